@@ -1,0 +1,230 @@
+"""Frozen configuration of the simulated world.
+
+Frame (used everywhere, reported by `ttmjx throw --json`): x along the table's length,
+y across it, z up; the table's centre is at x = y = 0. The robot stands behind the end line at
+negative x, the thrower (the "opponent") at positive x. Goals and landings are (x, y) on the
+table top, in metres.
+
+Numbers marked *assumed* in shared/docs/PHYSICS.md have no public source: they are fields here,
+not constants in code.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+DEG = math.pi / 180.0
+
+JOINT_NAMES = ("gantry_x", "gantry_y", "j1", "j2", "j3", "j4", "j5", "j6")
+
+
+@dataclasses.dataclass(frozen=True)
+class Table:
+    """ITTF table and net (PHYSICS.md)."""
+    length: float = 2.74
+    width: float = 1.525
+    top_z: float = 0.76
+    thickness: float = 0.03
+    net_height: float = 0.1525
+    net_length: float = 1.83
+    # The collision box of the net is thicker than a real net (2 cm): at 1 ms steps a ball at
+    # 20 m/s moves 2 cm a step, and the thicker box keeps it from tunnelling.
+    net_thickness: float = 0.02
+
+    @property
+    def half_length(self) -> float:
+        return self.length / 2
+
+    @property
+    def half_width(self) -> float:
+        return self.width / 2
+
+
+@dataclasses.dataclass(frozen=True)
+class Ball:
+    radius: float = 0.02
+    mass: float = 0.0027
+    drag_coefficient: float = 0.47        # Cd in F = 1/2 rho Cd A |v| v
+    magnus_coefficient: float = 1.0       # MuJoCo fluidcoef[4]: F_M = C_M rho V (w x v)
+    angular_drag_coefficient: float = 1.5 # MuJoCo fluidcoef[2]
+    air_density: float = 1.225
+
+    @property
+    def hollow_inertia(self) -> float:
+        """Moment of inertia of a thin spherical shell, 2/3 m r^2 (kg m^2)."""
+        return 2.0 / 3.0 * self.mass * self.radius**2
+
+
+@dataclasses.dataclass(frozen=True)
+class Contacts:
+    """Bouncy contacts: MuJoCo's direct (-stiffness, -damping) solref.
+
+    Stiffness 1e6 at 1 ms keeps sqrt(k) * dt <= 1 (PHYSICS.md); the damping values were tuned
+    so that the *measured* restitution lands in the target band (tests/test_physics.py).
+    """
+    table_stiffness: float = 1.0e6
+    table_damping: float = 74.0
+    table_friction: float = 0.2
+    paddle_stiffness: float = 1.0e6
+    paddle_damping: float = 166.0
+    paddle_friction: float = 0.6
+    net_stiffness: float = 1.0e6
+    net_damping: float = 900.0
+    net_friction: float = 0.3
+    impedance: float = 0.99
+
+
+@dataclasses.dataclass(frozen=True)
+class Robot:
+    """ABB IRB 120T on a two-axis gantry (PHYSICS.md); order = JOINT_NAMES."""
+    # Gantry carriage centre (world x, y) and the arm base height (assumed).
+    base_x: float = -1.95
+    base_y: float = 0.0
+    base_z: float = 0.55
+    lower: tuple = (-0.25, -0.9, -165 * DEG, -110 * DEG, -110 * DEG, -160 * DEG, -120 * DEG, -400 * DEG)
+    upper: tuple = (0.25, 0.9, 165 * DEG, 110 * DEG, 70 * DEG, 160 * DEG, 120 * DEG, 400 * DEG)
+    max_speed: tuple = (2.0, 2.0, 250 * DEG, 250 * DEG, 250 * DEG, 420 * DEG, 590 * DEG, 600 * DEG)
+    # Fraction of the speed limits the command clipping uses, so the servo's lag never pushes
+    # a joint past the real limit.
+    speed_margin: float = 0.95
+    link_masses: tuple = (6.215, 3.067, 3.909, 2.944, 1.328, 0.546, 0.137)
+    gantry_mass: float = 10.0                 # assumed
+    paddle_mass: float = 0.15                 # assumed
+    extension: float = 0.17426
+    blade_half_size: tuple = (0.075, 0.08)    # along the extension, across (assumed 15 x 16 cm)
+    blade_thickness: float = 0.02             # >= 10 mm: a box this thick never lets a ball through
+    # Reflected motor inertia dominates the joint-space inertia, which decouples the joints so
+    # that a critically damped servo cannot overshoot the speed limits.
+    armature: tuple = (20.0, 20.0, 2.0, 2.0, 1.0, 0.2, 0.2, 0.05)
+    servo_omega: float = 60.0                 # rad/s natural frequency of the position servos
+    home: tuple = (0.0, 0.0, 0.0, 0.35, -0.35, 0.0, -0.2, 0.0)
+    home_noise: tuple = (0.02, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05)
+
+    def __post_init__(self):
+        for name in ("lower", "upper", "max_speed", "armature", "home", "home_noise"):
+            if len(getattr(self, name)) != 8:
+                raise ValueError(f"Robot.{name} must have 8 entries (one per joint {JOINT_NAMES}), "
+                                 f"got {len(getattr(self, name))}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Throws:
+    """The three throw distributions of the paper; `name` picks one.
+
+    narrow: one launch position, narrow speed range, forehand landing region.
+    any:    wide launch positions and velocities (~5-9 m/s), landing anywhere on the robot's half.
+    varied: three launch x positions cycled, yaw swept, fixed speed.
+    """
+    name: str = "narrow"
+    spin: bool = False
+    max_spin: float = 150.0                    # rad/s per axis when spin is on
+    # narrow
+    narrow_launch: tuple = (1.75, 0.35, 0.95)
+    narrow_speed: tuple = (6.5, 7.5)
+    narrow_aim_x: tuple = (-0.95, -0.55)
+    narrow_aim_y: tuple = (-0.40, -0.15)
+    # any
+    any_launch_x: tuple = (1.5, 2.0)
+    any_launch_y: tuple = (-0.6, 0.6)
+    any_launch_z: tuple = (0.85, 1.1)
+    any_speed: tuple = (5.0, 9.0)
+    any_aim_x: tuple = (-1.25, -0.25)
+    any_aim_y: tuple = (-0.65, 0.65)
+    # varied
+    varied_launch_x: tuple = (1.6, 1.8, 2.0)
+    varied_launch_yz: tuple = (0.0, 0.95)
+    varied_speed: float = 7.0
+    varied_yaw_deg: tuple = (-12.0, 12.0)
+
+    def __post_init__(self):
+        if self.name not in THROW_DISTRIBUTIONS:
+            raise ValueError(f"unknown throw distribution {self.name!r}; expected one of "
+                             f"{THROW_DISTRIBUTIONS}")
+
+
+THROW_DISTRIBUTIONS = ("narrow", "any", "varied")
+CONTROL_RATES = (20, 60, 100)
+
+
+@dataclasses.dataclass(frozen=True)
+class World:
+    """Everything that defines the task; saved with every run."""
+    table: Table = Table()
+    ball: Ball = Ball()
+    contacts: Contacts = Contacts()
+    robot: Robot = Robot()
+    throws: Throws = Throws()
+    physics_dt: float = 0.001
+    control_hz: int = 100
+    episode_s: float = 1.6
+    ball_velocity_obs: bool = False   # True: 16-value observations (the paper's original sim)
+    frame_stack: int = 8
+
+    def __post_init__(self):
+        steps = 1.0 / (self.control_hz * self.physics_dt)
+        if self.control_hz <= 0 or abs(steps - round(steps)) > 1e-6 or round(steps) < 1:
+            raise ValueError(f"control_hz={self.control_hz} does not divide into physics steps of "
+                             f"physics_dt={self.physics_dt}s (1/(hz*dt) = {steps:.4g} is not an integer)")
+        if self.frame_stack < 1:
+            raise ValueError(f"frame_stack must be >= 1, got {self.frame_stack}")
+        if self.episode_s <= 0:
+            raise ValueError(f"episode_s must be > 0, got {self.episode_s}")
+
+    @property
+    def substeps(self) -> int:
+        """Physics steps per control step."""
+        return int(round(1.0 / (self.control_hz * self.physics_dt)))
+
+    @property
+    def control_dt(self) -> float:
+        return self.substeps * self.physics_dt
+
+    @property
+    def horizon(self) -> int:
+        """Control steps per episode (time limit)."""
+        return int(round(self.episode_s * self.control_hz))
+
+    @property
+    def obs_size(self) -> int:
+        return 16 if self.ball_velocity_obs else 13
+
+    def frame(self) -> dict:
+        """The coordinate frame as reported in JSON."""
+        return {"table_top_z": self.table.top_z,
+                "table_x": [-self.table.half_length, self.table.half_length],
+                "table_y": [-self.table.half_width, self.table.half_width]}
+
+    def with_throws(self, name: str, **kw) -> "World":
+        return dataclasses.replace(self, throws=dataclasses.replace(self.throws, name=name, **kw))
+
+
+def to_dict(cfg) -> dict:
+    """A JSON-ready dict of a (nested) config dataclass."""
+    return dataclasses.asdict(cfg)
+
+
+def from_dict(cls, d: dict):
+    """Inverse of to_dict for nested frozen dataclasses (tuples restored from lists)."""
+    kwargs = {}
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    for k, v in d.items():
+        if k not in fields:
+            raise ValueError(f"unknown config field {cls.__name__}.{k}")
+        ftype = fields[k].type
+        sub = _DATACLASSES.get(ftype if isinstance(ftype, str) else getattr(ftype, "__name__", ""))
+        if sub is not None and isinstance(v, dict):
+            v = from_dict(sub, v)
+        elif isinstance(v, list):
+            v = tuple(tuple(x) if isinstance(x, list) else x for x in v)
+        kwargs[k] = v
+    return cls(**kwargs)
+
+
+_DATACLASSES = {c.__name__: c for c in (Table, Ball, Contacts, Robot, Throws, World)}
+
+
+def opponent_half(table: Table) -> np.ndarray:
+    """[[xmin, xmax], [ymin, ymax]] of the opponent's half (goals live here)."""
+    return np.array([[0.0, table.half_length], [-table.half_width, table.half_width]])
