@@ -144,6 +144,10 @@ def mjcf(cfg: World, fluid: bool = True) -> str:
   <actuator>
     {chr(10).join(actuators)}
   </actuator>
+  <sensor>
+    <!-- The blade centre: events tell paddle contacts from table/net ones by it. -->
+    <framepos name="paddle" objtype="site" objname="paddle"/>
+  </sensor>
 </mujoco>
 """
 

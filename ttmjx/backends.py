@@ -1,0 +1,246 @@
+"""Two physics backends for one task, and the batched rollout that produces Trajectories.
+
+* MJX: the whole rollout (policy, clipping, physics substeps, events) is one jit-compiled,
+  vmapped `lax.scan`; the air forces MJX lacks come from ttmjx.ballphysics via xfrc_applied.
+* MuJoCo C: physics in batched multi-threaded `mujoco.rollout` calls, one control step at a time
+  (MuJoCo's own ellipsoid fluid model flies the ball); the policy and the task logic run as
+  jit-compiled, vmapped JAX between the calls. The default on a CPU, where MJX is ~200x slower.
+"""
+from __future__ import annotations
+
+import functools
+import os
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from ttmjx import ballphysics, env, scene
+from ttmjx.config import World
+from ttmjx.record import Trajectories
+
+BACKENDS = ("c", "mjx")
+
+
+class Policy(NamedTuple):
+    """A policy for ONE throw (docs/DESIGN.md); batched by vmap."""
+    init: Callable      # (params, key) -> carry
+    apply: Callable     # (params, carry, env.Obs, key) -> (carry, action [8])
+
+
+def _ramp(ctrl0, ctrl1, n: int):
+    """[..., n, 8] targets interpolated linearly over the n physics steps of a control step."""
+    w = (jnp.arange(1, n + 1, dtype=jnp.float32) / n)[:, None]
+    return ctrl0[..., None, :] + w * (ctrl1 - ctrl0)[..., None, :]
+
+
+def _quat_rotate(q, v):
+    """Rotate v [3] by the unit quaternion q [4] (w, x, y, z)."""
+    w, u = q[0], q[1:]
+    return v + 2.0 * jnp.cross(u, jnp.cross(u, v) + w * v)
+
+
+class MjxPhysics:
+    """MJX physics for one throw; jit/vmap the methods."""
+
+    def __init__(self, cfg: World):
+        from mujoco import mjx
+        self.cfg = cfg
+        self.m = scene.model(cfg, fluid=False)  # zero density: MJX's box drag would be wrong
+        self.mx = mjx.put_model(self.m)
+        self.lay = env.layout(self.m)
+        self.ball_body = int(self.m.body("ball").id)
+        self._data0 = mjx.make_data(self.mx)
+
+    def step(self, qpos, qvel, ctrl0, ctrl1):
+        """One control step. qpos [nq], qvel [nv], ctrl0/ctrl1 [8] ->
+        (qpos, qvel, ball [S, 6] world pos+vel after each physics step, paddle [S, 3])."""
+        from mujoco import mjx
+        cfg, lay = self.cfg, self.lay
+        bq, bv = lay.ball_qpos, lay.ball_qvel
+
+        def substep(d, ctrl):
+            vel = d.qvel[bv:bv + 3]
+            spin = _quat_rotate(d.qpos[bq + 3:bq + 7], d.qvel[bv + 3:bv + 6])
+            force, torque = ballphysics.air_force_torque(vel, spin, cfg.ball)
+            xfrc = jnp.zeros_like(d.xfrc_applied).at[self.ball_body].set(jnp.concatenate([force, torque]))
+            d = mjx.step(self.mx, d.replace(ctrl=ctrl, xfrc_applied=xfrc))
+            ball = jnp.concatenate([d.qpos[bq:bq + 3], d.qvel[bv:bv + 3]])
+            return d, (ball, d.sensordata[:3])
+
+        d = self._data0.replace(qpos=qpos, qvel=qvel)
+        d, (ball, paddle) = jax.lax.scan(substep, d, _ramp(ctrl0, ctrl1, cfg.substeps))
+        return d.qpos, d.qvel, ball, paddle
+
+
+class CPhysics:
+    """MuJoCo C physics for a batch, through mujoco.rollout's persistent thread pool."""
+
+    def __init__(self, cfg: World, nthread: int | None = None):
+        self.cfg = cfg
+        self.m = scene.model(cfg, fluid=True)
+        self.lay = env.layout(self.m)
+        self.nthread = nthread or os.cpu_count() or 1
+        self.datas = [mujoco.MjData(self.m) for _ in range(self.nthread)]
+        from mujoco import rollout
+        self.pool = rollout.Rollout(nthread=self.nthread)
+        self.spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        self.nstate = mujoco.mj_stateSize(self.m, self.spec)
+        self.nq, self.nv = self.m.nq, self.m.nv
+
+    def initial_state(self, qpos, qvel):
+        """[B, nstate] full physics state for mujoco.rollout from qpos [B, nq], qvel [B, nv]."""
+        b = qpos.shape[0]
+        st = np.zeros((b, self.nstate))
+        st[:, 1:1 + self.nq] = qpos
+        st[:, 1 + self.nq:1 + self.nq + self.nv] = qvel
+        return st
+
+    def step(self, qpos, qvel, ctrl0, ctrl1):
+        """One control step for B throws. qpos [B, nq], qvel [B, nv], ctrl0/ctrl1 [B, 8] ->
+        (qpos [B, nq], qvel [B, nv], ball [B, S, 6], paddle [B, S, 3]) as numpy float64."""
+        qpos, qvel = np.asarray(qpos, np.float64), np.asarray(qvel, np.float64)
+        ctrl = np.asarray(_ramp(np.asarray(ctrl0, np.float64), np.asarray(ctrl1, np.float64),
+                                self.cfg.substeps), np.float64)
+        state, sensordata = self.pool.rollout(self.m, self.datas, self.initial_state(qpos, qvel), ctrl,
+                                              nstep=self.cfg.substeps)
+        nq, nv = self.nq, self.nv
+        lay = self.lay
+        q = state[:, :, 1:1 + nq]
+        v = state[:, :, 1 + nq:1 + nq + nv]
+        ball = np.concatenate([q[:, :, lay.ball_qpos:lay.ball_qpos + 3],
+                               v[:, :, lay.ball_qvel:lay.ball_qvel + 3]], axis=-1)
+        return q[:, -1], v[:, -1], ball, sensordata[:, :, :3]
+
+    def close(self):
+        self.pool.close()
+
+
+def _record(cfg: World, lay: env.Layout, states: env.State, frames, vels, actions, valids) -> Trajectories:
+    """Assemble Trajectories from the final states and per-step arrays [B, T, ...]."""
+    ev = states.events
+    obs13 = frames if not cfg.ball_velocity_obs else jnp.concatenate([frames[..., :11], frames[..., 14:]], -1)
+    return Trajectories(
+        obs=obs13, ball_vel=vels, actions=actions, valid=valids, goal=states.goal,
+        hit=ev.hit, hit_step=ev.hit_step, landing=jnp.where(ev.hit[:, None], ev.landing, jnp.nan),
+        on_opponent=ev.on_opponent, bounce_own=ev.bounce_own, net=ev.net,
+        launch_pos=states.launch[:, 0:3], launch_vel=states.launch[:, 3:6],
+        launch_spin=states.launch[:, 6:9], aim=states.aim)
+
+
+class Backend:
+    """reset/step/rollout for a batch of throws on one physics backend."""
+
+    def __init__(self, cfg: World, name: str = "c", nthread: int | None = None):
+        if name not in BACKENDS:
+            raise ValueError(f"unknown backend {name!r}; expected one of {BACKENDS}")
+        self.cfg, self.name = cfg, name
+        self.physics = MjxPhysics(cfg) if name == "mjx" else CPhysics(cfg, nthread)
+        self.lay = self.physics.lay
+        cfg_, lay = cfg, self.lay
+        self._reset = jax.jit(jax.vmap(functools.partial(env.reset, cfg_, lay)))
+        self._observe = jax.vmap(functools.partial(env.observe, cfg_, lay))
+        self._command = jax.vmap(functools.partial(env.command, cfg_))
+        self._advance = jax.jit(jax.vmap(functools.partial(env.advance, cfg_, lay)))
+        self._rollouts = {}
+
+    # -- batched primitives ---------------------------------------------------------------
+    def reset(self, key, throws, goals) -> env.State:
+        """[B] states at launch. throws: a Throw with [B, ...] fields; goals [B, 2]."""
+        b = np.shape(throws.launch_pos)[0]
+        goals = env.check_goals(goals, b)
+        keys = jax.random.split(key, b)
+        return self._reset(keys, jnp.asarray(throws.launch_pos, jnp.float32),
+                           jnp.asarray(throws.launch_vel, jnp.float32),
+                           jnp.asarray(throws.launch_spin, jnp.float32),
+                           jnp.asarray(throws.aim, jnp.float32), jnp.asarray(goals))
+
+    def step(self, states: env.State, actions) -> env.State:
+        """One control step for B throws with actions [B, 8] (validated)."""
+        actions = env.check_actions(actions, states.t.shape[0])
+        target = self._command(states, jnp.asarray(actions))
+        if self.name == "mjx":
+            out = jax.vmap(self.physics.step)(states.qpos, states.qvel, states.target, target)
+        else:
+            out = self.physics.step(np.asarray(states.qpos), np.asarray(states.qvel),
+                                    np.asarray(states.target), np.asarray(target))
+        return self._advance(states, target, *out)
+
+    # -- rollouts ------------------------------------------------------------------------
+    def rollout(self, policy: Policy, params, key, throws, goals, horizon: int | None = None) -> Trajectories:
+        """Roll `policy` out on B throws toward goals [B, 2]; returns the trajectory record
+        with T = horizon (default cfg.horizon) steps."""
+        t_max = horizon or self.cfg.horizon
+        k_reset, k_init, k_act = jax.random.split(key, 3)
+        states = self.reset(k_reset, throws, goals)
+        if self.name == "mjx":
+            fn = self._mjx_rollout(policy, t_max)
+            return fn(params, states, k_init, k_act)
+        return self._c_rollout(policy, params, states, k_init, k_act, t_max)
+
+    def _policy_step(self, policy: Policy):
+        """jit(vmap) of: observe -> act -> clip, for a batch."""
+        def act(params, carry, states, key):
+            obs = self._observe(states)
+            keys = jax.random.split(key, states.t.shape[0])
+            carry, action = jax.vmap(policy.apply, in_axes=(None, 0, 0, 0))(params, carry, obs, keys)
+            return carry, obs, self._command(states, action)
+        return act
+
+    def _c_rollout(self, policy, params, states, k_init, k_act, t_max):
+        key = ("c", policy, t_max)
+        if key not in self._rollouts:
+            init = jax.jit(jax.vmap(policy.init, in_axes=(None, 0)))
+            self._rollouts[key] = (init, jax.jit(self._policy_step(policy)))
+        init, act = self._rollouts[key]
+        b = states.t.shape[0]
+        carry = init(params, jax.random.split(k_init, b))
+        frames, vels, actions, valids = [], [], [], []
+        for t in range(t_max):
+            valid = ~np.asarray(states.events.done)
+            carry, obs, target = act(params, carry, states, jax.random.fold_in(k_act, t))
+            out = self.physics.step(np.asarray(states.qpos), np.asarray(states.qvel),
+                                    np.asarray(states.target), np.asarray(target))
+            frames.append(obs.frame), vels.append(obs.ball_vel), actions.append(target), valids.append(valid)
+            states = self._advance(states, target, *out)
+            if not valid.any():
+                break
+        pad = t_max - len(frames)
+        stack = lambda xs: np.concatenate([np.stack([np.asarray(x) for x in xs], 1),
+                                           np.repeat(np.asarray(xs[-1])[:, None], pad, 1)], 1)
+        valid_arr = np.concatenate([np.stack(valids, 1), np.zeros((b, pad), bool)], 1)
+        return jax.tree.map(np.asarray, _record(self.cfg, self.lay, states, stack(frames), stack(vels),
+                                                stack(actions), valid_arr))
+
+    def _mjx_rollout(self, policy, t_max):
+        key = ("mjx", policy, t_max)
+        if key in self._rollouts:
+            return self._rollouts[key]
+        act = self._policy_step(policy)
+        phys = jax.vmap(self.physics.step)
+
+        def run(params, states, k_init, k_act):
+            carry = jax.vmap(policy.init, in_axes=(None, 0))(params, jax.random.split(k_init, states.t.shape[0]))
+
+            def body(c, t):
+                carry, states = c
+                valid = ~states.events.done
+                carry, obs, target = act(params, carry, states, jax.random.fold_in(k_act, t))
+                states = jax.vmap(functools.partial(env.advance, self.cfg, self.lay))(
+                    states, target, *phys(states.qpos, states.qvel, states.target, target))
+                return (carry, states), (obs.frame, obs.ball_vel, target, valid)
+
+            (carry, states), (f, v, a, val) = jax.lax.scan(body, (carry, states), jnp.arange(t_max))
+            sw = lambda x: jnp.swapaxes(x, 0, 1)
+            return _record(self.cfg, self.lay, states, sw(f), sw(v), sw(a), sw(val))
+
+        self._rollouts[key] = jax.jit(run)
+        return self._rollouts[key]
+
+
+def hold_policy() -> Policy:
+    """A policy that keeps the robot at its reset pose (events and physics tests)."""
+    return Policy(init=lambda params, key: jnp.zeros(()),
+                  apply=lambda params, carry, obs, key: (carry, obs.frame[:8]))
