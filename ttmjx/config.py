@@ -88,7 +88,7 @@ class Robot:
     max_speed: tuple = (2.0, 2.0, 250 * DEG, 250 * DEG, 250 * DEG, 420 * DEG, 590 * DEG, 600 * DEG)
     # Fraction of the speed limits the command clipping uses, so the servo's lag never pushes
     # a joint past the real limit.
-    speed_margin: float = 0.95
+    speed_margin: float = 0.92
     link_masses: tuple = (6.215, 3.067, 3.909, 2.944, 1.328, 0.546, 0.137)
     gantry_mass: float = 10.0                 # assumed
     paddle_mass: float = 0.15                 # assumed
@@ -97,8 +97,10 @@ class Robot:
     blade_thickness: float = 0.02             # >= 10 mm: a box this thick never lets a ball through
     # Reflected motor inertia dominates the joint-space inertia, which decouples the joints so
     # that a critically damped servo cannot overshoot the speed limits.
-    armature: tuple = (20.0, 20.0, 2.0, 2.0, 1.0, 0.2, 0.2, 0.05)
+    armature: tuple = (20.0, 20.0, 4.0, 4.0, 2.0, 0.2, 0.2, 0.05)
     servo_omega: float = 60.0                 # rad/s natural frequency of the position servos
+    servo_damping: float = 1.3                # damping ratio at the home-pose inertia (> 1: pose changes
+                                              # that add inertia keep the servo near critical)
     home: tuple = (0.0, 0.0, 0.0, 0.35, -0.35, 0.0, -0.2, 0.0)
     home_noise: tuple = (0.02, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05)
 
@@ -137,11 +139,26 @@ class Throws:
     varied_launch_yz: tuple = (0.0, 0.95)
     varied_speed: float = 7.0
     varied_yaw_deg: tuple = (-12.0, 12.0)
+    # Horizontal distance from the launch point to the aim along the yawed line: a fixed-speed,
+    # fixed-site thrower lands deeper on the robot's half the closer it stands to the net.
+    varied_distance: tuple = (2.45, 2.85)
+    # Launch solve (ttmjx/thrower.py).
+    candidates: int = 4                       # independent candidates per throw; first valid kept
+    newton_iters: int = 5
+    max_pitch: float = 0.6                    # rad: low arcs only (sets the slowest `any` speed)
+    net_margin: float = 0.02                  # m: the ball's bottom clears the net tape by this
+    solve_tol: float = 0.005                  # m: predicted first bounce within this of the aim
+    max_flight_s: float = 1.5                 # s: a throw not down by then is invalid
 
     def __post_init__(self):
         if self.name not in THROW_DISTRIBUTIONS:
             raise ValueError(f"unknown throw distribution {self.name!r}; expected one of "
                              f"{THROW_DISTRIBUTIONS}")
+        if self.candidates < 1 or self.newton_iters < 1:
+            raise ValueError(f"Throws.candidates and Throws.newton_iters must be >= 1, got "
+                             f"{self.candidates} and {self.newton_iters}")
+        if len(self.varied_launch_x) != 3:
+            raise ValueError(f"Throws.varied_launch_x must hold 3 positions, got {self.varied_launch_x}")
 
 
 THROW_DISTRIBUTIONS = ("narrow", "any", "varied")

@@ -172,8 +172,10 @@ def update_events(cfg: World, ev: Events, t, ball_prev, ball, paddle) -> Events:
         first_hit = is_hit & ~ev.hit
         own_bounce = is_table & ~ev.hit & (pos[0] < 0)
         land = is_table & ev.hit & ~ev.landed
-        # A hit ball that misses the table: where it falls through table height.
-        crossing = live & ev.hit & ~ev.landed & (ppos[2] >= height) & (pos[2] < height) & ~is_table
+        # A hit ball that misses the table: where it falls through table height outside the
+        # table's footprint (inside it, the table contact itself is the landing).
+        off_table = (jnp.abs(pos[0]) > tab.half_length) | (jnp.abs(pos[1]) > tab.half_width)
+        crossing = live & ev.hit & ~ev.landed & (ppos[2] >= height) & (pos[2] < height) & off_table & ~is_table
         frac = jnp.clip((ppos[2] - height) / jnp.maximum(ppos[2] - pos[2], 1e-9), 0.0, 1.0)
         cross_xy = ppos[:2] + frac * (pos[:2] - ppos[:2])
         new_landed = land | crossing

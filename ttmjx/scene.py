@@ -29,7 +29,23 @@ def _link_inertial(mass: float, length: float, axis: str) -> str:
     return f'<inertial pos="{_v(*pos)}" mass="{mass}" diaginertia="{_v(*diag)}"/>'
 
 
-def mjcf(cfg: World, fluid: bool = True) -> str:
+@functools.lru_cache(maxsize=16)
+def servo_inertia(cfg: World) -> tuple:
+    """Joint-space inertia (diagonal of M, armature included) of the 8 robot joints at home.
+
+    The servo gains are set from it: critically damped on the real inertia each joint moves
+    (the gantry carries the whole arm, so its armature alone would under-damp it)."""
+    m = mujoco.MjModel.from_xml_string(mjcf(cfg, True, inertia=(1.0,) * 8))
+    d = mujoco.MjData(m)
+    for i, name in enumerate(JOINT_NAMES):
+        d.qpos[m.joint(name).qposadr[0]] = cfg.robot.home[i]
+    mujoco.mj_forward(m, d)
+    full = np.zeros((m.nv, m.nv))
+    mujoco.mj_fullM(m, d, full)
+    return tuple(float(full[m.joint(n).dofadr[0], m.joint(n).dofadr[0]]) for n in JOINT_NAMES)
+
+
+def mjcf(cfg: World, fluid: bool = True, inertia: tuple | None = None) -> str:
     """MJCF text of the scene.
 
     fluid=True uses MuJoCo's ellipsoid fluid model for the ball (C backend). The MJX model is
@@ -51,11 +67,12 @@ def mjcf(cfg: World, fluid: bool = True) -> str:
     bh, bw = r.blade_half_size
     blade_centre = r.extension + bh
     actuators = []
+    inertia = inertia or servo_inertia(cfg)
     for i, name in enumerate(JOINT_NAMES):
-        # Critically damped servo on the joint's own armature-dominated inertia.
-        inertia = r.armature[i]
-        kp = inertia * r.servo_omega**2
-        kv = 2.0 * inertia * r.servo_omega
+        # Over-damped servo (ratio servo_damping at the home-pose inertia): a critically or
+        # over-damped response to a speed-limited ramp never overshoots the ramp's speed or range.
+        kp = inertia[i] * r.servo_omega**2
+        kv = 2.0 * r.servo_damping * inertia[i] * r.servo_omega
         actuators.append(
             f'<position name="{name}" joint="{name}" kp="{kp:.6g}" kv="{kv:.6g}" '
             f'ctrlrange="{_v(r.lower[i], r.upper[i])}" ctrllimited="true"/>')

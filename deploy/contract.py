@@ -1,0 +1,99 @@
+"""The runtime contract between an exported policy and the robot runner.
+
+Everything the runner must agree on with the policy and the robot: the control rate, the frame
+stack, the observation size and the joint limits. The export step (later) writes it as JSON
+beside the weights; `contract_from_world` builds it from the simulation config.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ttmjx.config import JOINT_NAMES, Robot, World
+
+# The real robot has no ball velocity (paper, Policy architecture): 13-value frames only.
+REAL_OBS_SIZE = 13
+_ROBOT = Robot()
+
+
+@dataclasses.dataclass(frozen=True)
+class Contract:
+    """Control rate, observation layout and joint limits (order = JOINT_NAMES)."""
+    control_hz: float = 20.0          # 20 Hz (narrow/any balls), 60 Hz (varied balls) on the robot
+    frame_stack: int = 8
+    obs_size: int = REAL_OBS_SIZE
+    episode_s: float = 1.6
+    joint_names: tuple = JOINT_NAMES
+    lower: tuple = _ROBOT.lower
+    upper: tuple = _ROBOT.upper
+    max_speed: tuple = _ROBOT.max_speed   # per joint, m/s (gantry) or rad/s (arm)
+    speed_margin: float = _ROBOT.speed_margin  # fraction of max_speed commands may use
+    home: tuple = _ROBOT.home
+
+    def __post_init__(self):
+        if not self.control_hz > 0:
+            raise ValueError(f"Contract.control_hz={self.control_hz}, expected > 0")
+        if self.frame_stack < 1:
+            raise ValueError(f"Contract.frame_stack={self.frame_stack}, expected >= 1")
+        if self.obs_size != REAL_OBS_SIZE:
+            raise ValueError(f"Contract.obs_size={self.obs_size}: the robot observes {REAL_OBS_SIZE} "
+                             f"values per frame (no ball velocity)")
+        if not self.episode_s > 0:
+            raise ValueError(f"Contract.episode_s={self.episode_s}, expected > 0")
+        if tuple(self.joint_names) != JOINT_NAMES:
+            raise ValueError(f"Contract.joint_names={tuple(self.joint_names)}, expected {JOINT_NAMES}")
+        for name in ("lower", "upper", "max_speed", "home"):
+            v = np.asarray(getattr(self, name), dtype=np.float64)
+            if v.shape != (8,) or not np.all(np.isfinite(v)):
+                raise ValueError(f"Contract.{name} must be 8 finite numbers (one per joint "
+                                 f"{JOINT_NAMES}), got {getattr(self, name)!r}")
+        lo, hi = np.asarray(self.lower), np.asarray(self.upper)
+        if np.any(lo >= hi):
+            j = int(np.argmax(lo >= hi))
+            raise ValueError(f"Contract: joint {JOINT_NAMES[j]} has lower={lo[j]} >= upper={hi[j]}")
+        if np.any(np.asarray(self.max_speed) <= 0):
+            j = int(np.argmax(np.asarray(self.max_speed) <= 0))
+            raise ValueError(f"Contract.max_speed[{JOINT_NAMES[j]}]={self.max_speed[j]}, expected > 0")
+        if not 0 < self.speed_margin <= 1:
+            raise ValueError(f"Contract.speed_margin={self.speed_margin}, expected in (0, 1]")
+        home = np.asarray(self.home)
+        if np.any((home < lo) | (home > hi)):
+            j = int(np.argmax((home < lo) | (home > hi)))
+            raise ValueError(f"Contract.home[{JOINT_NAMES[j]}]={home[j]} is outside [{lo[j]}, {hi[j]}]")
+
+    @property
+    def dt(self) -> float:
+        """Control period (s)."""
+        return 1.0 / self.control_hz
+
+    @property
+    def horizon(self) -> int:
+        """Control ticks per episode."""
+        return max(1, int(round(self.episode_s * self.control_hz)))
+
+
+def contract_from_world(cfg: World, control_hz: float = 20.0) -> Contract:
+    """The robot contract for a simulation config at the robot's policy rate.
+
+    control_hz is separate from cfg.control_hz: the simulation runs at 100 Hz, the robot at 20 or
+    60 Hz (60 Hz does not divide the 1 ms physics step, so it cannot be a World rate).
+    """
+    r = cfg.robot
+    return Contract(control_hz=float(control_hz), frame_stack=cfg.frame_stack,
+                    episode_s=cfg.episode_s, lower=tuple(r.lower), upper=tuple(r.upper),
+                    max_speed=tuple(r.max_speed), speed_margin=r.speed_margin, home=tuple(r.home))
+
+
+def contract_to_dict(c: Contract) -> dict:
+    """JSON-ready dict."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(c).items()}
+
+
+def contract_from_dict(d: dict) -> Contract:
+    """Inverse of contract_to_dict; unknown keys are an error naming them."""
+    fields = {f.name for f in dataclasses.fields(Contract)}
+    unknown = sorted(set(d) - fields)
+    if unknown:
+        raise ValueError(f"contract has unknown keys {unknown}; expected a subset of {sorted(fields)}")
+    return Contract(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})

@@ -1,0 +1,129 @@
+"""One robot episode as the project's trajectory record plus the runner's own arrays.
+
+On disk (`save_episode`): `<name>.npz` + `<name>.meta.json` written by ttmjx.record.save (B = 1)
+and `<name>.deploy.npz` beside them with the arrays below (plain numeric, loaded without pickle).
+
+Per tick (T = contract horizon):
+  t_grid [T]       deadline t0 + n * dt (the time observations are interpolated to)
+  t_wake [T]       when the tick started (NaN if skipped)
+  t_sent [T]       when its command was sent (NaN if skipped or nothing sent)
+  latency [T]      t_sent - t_grid
+  executed [T]     the tick ran (False: its deadline passed first, or after the episode ended)
+  raw_actions [T, 8]   the policy's output (NaN where it was not called)
+  commands [T, 8]      the target sent (= Trajectories.actions; the held target on skipped ticks)
+  faults [T]       int32 fault bits (deploy.safety.FAULTS)
+  ball_used_t [T, 2], ball_used_xyz [T, 2, 3]    the two ball samples interpolated
+  joint_used_t [T, 2], joint_used_q [T, 2, 8]    the two joint samples interpolated
+Raw streams, everything received during the episode (accepted or not):
+  ball_t [N], ball_xyz [N, 3], ball_ok [N];  joint_t [M], joint_q [M, 8], joint_ok [M]
+"""
+from __future__ import annotations
+
+import os
+from typing import NamedTuple
+
+import numpy as np
+
+from ttmjx import record
+from ttmjx.record import Trajectories
+
+EXTRAS_SUFFIX = ".deploy.npz"
+
+
+class Episode(NamedTuple):
+    traj: Trajectories      # B = 1
+    extras: dict            # name -> array (see the module docstring)
+    meta: dict              # JSON-ready
+
+
+class EpisodeLog:
+    """Arrays of one episode, filled tick by tick."""
+
+    def __init__(self, horizon: int, goal: np.ndarray):
+        T = horizon
+        self.horizon, self.goal = T, np.asarray(goal, np.float32)
+        nan = lambda *s: np.full(s, np.nan)  # noqa: E731
+        self.obs = np.zeros((T, 13), np.float32)
+        self.ball_vel = np.zeros((T, 3), np.float32)
+        self.valid = np.zeros(T, bool)
+        self.t_grid, self.t_wake, self.t_sent = nan(T), nan(T), nan(T)
+        self.executed = np.zeros(T, bool)
+        self.raw_actions, self.commands = nan(T, 8), nan(T, 8)
+        self.faults = np.zeros(T, np.int32)
+        self.ball_used_t, self.ball_used_xyz = nan(T, 2), nan(T, 2, 3)
+        self.joint_used_t, self.joint_used_q = nan(T, 2), nan(T, 2, 8)
+        self._ball, self._joint = [], []
+
+    def add_ball(self, t: float, xyz: np.ndarray, ok: bool) -> None:
+        self._ball.append((t, np.asarray(xyz, np.float64).reshape(3), ok))
+
+    def add_joint(self, t: float, q: np.ndarray, ok: bool) -> None:
+        self._joint.append((t, np.asarray(q, np.float64).reshape(8), ok))
+
+    def tick(self, n: int, *, t_grid, frame, ball, joint, command, faults, executed,
+             t_wake=np.nan, t_sent=np.nan, raw_action=None) -> None:
+        """Record tick n. ball/joint: the Interpolated used; frame [13]; command [8]."""
+        self.t_grid[n], self.t_wake[n], self.t_sent[n] = t_grid, t_wake, t_sent
+        self.obs[n], self.ball_vel[n] = frame, ball.slope
+        self.valid[n], self.executed[n] = True, executed
+        self.commands[n] = command
+        if raw_action is not None:
+            self.raw_actions[n] = raw_action
+        self.faults[n] |= faults
+        self.ball_used_t[n] = (ball.t_lo, ball.t_hi)
+        self.ball_used_xyz[n] = (ball.x_lo, ball.x_hi)
+        self.joint_used_t[n] = (joint.t_lo, joint.t_hi)
+        self.joint_used_q[n] = (joint.x_lo, joint.x_hi)
+
+    def extras(self) -> dict:
+        ball, joint = self._ball, self._joint
+        return {
+            "t_grid": self.t_grid, "t_wake": self.t_wake, "t_sent": self.t_sent,
+            "latency": self.t_sent - self.t_grid, "executed": self.executed,
+            "raw_actions": self.raw_actions, "commands": self.commands, "faults": self.faults,
+            "ball_used_t": self.ball_used_t, "ball_used_xyz": self.ball_used_xyz,
+            "joint_used_t": self.joint_used_t, "joint_used_q": self.joint_used_q,
+            "ball_t": np.array([b[0] for b in ball], np.float64),
+            "ball_xyz": np.array([b[1] for b in ball], np.float64).reshape(-1, 3),
+            "ball_ok": np.array([b[2] for b in ball], bool),
+            "joint_t": np.array([j[0] for j in joint], np.float64),
+            "joint_q": np.array([j[1] for j in joint], np.float64).reshape(-1, 8),
+            "joint_ok": np.array([j[2] for j in joint], bool),
+        }
+
+    def trajectories(self) -> Trajectories:
+        """The B = 1 record. Outcome fields the runner cannot see (hit, landing, net...) are
+        False / -1 / NaN; launch_pos/launch_vel are the first ball sample and velocity used."""
+        nan2, nan3 = np.full((1, 2), np.nan, np.float32), np.full((1, 3), np.nan, np.float32)
+        first = int(np.argmax(self.valid)) if self.valid.any() else 0
+        f = np.zeros(1, bool)
+        return record.to_numpy(Trajectories(
+            obs=self.obs[None], ball_vel=self.ball_vel[None],
+            actions=np.nan_to_num(self.commands, nan=0.0)[None], valid=self.valid[None],
+            goal=self.goal[None], hit=f, hit_step=np.full(1, -1, np.int32), landing=nan2,
+            on_opponent=f, bounce_own=f, net=f,
+            launch_pos=self.obs[first, 8:11][None], launch_vel=self.ball_vel[first][None],
+            launch_spin=nan3, aim=nan2))
+
+
+def save_episode(directory: str, name: str, ep: Episode) -> str:
+    """Write the record (ttmjx.record.save) and the extras beside it; refuses to overwrite."""
+    extras_path = os.path.join(directory, name + EXTRAS_SUFFIX)
+    if os.path.exists(extras_path):
+        raise FileExistsError(f"{extras_path} already exists; refusing to overwrite an episode log")
+    path = record.save(directory, ep.traj, ep.meta, name=name)
+    tmp = extras_path + ".tmp.npz"
+    np.savez(tmp, **ep.extras)
+    os.replace(tmp, extras_path)
+    return path
+
+
+def load_episode(directory: str, name: str) -> Episode:
+    """Inverse of save_episode (no pickle)."""
+    traj, meta = record.load(directory, name)
+    extras_path = os.path.join(directory, name + EXTRAS_SUFFIX)
+    if not os.path.exists(extras_path):
+        raise record.RecordError(f"{extras_path}: missing (an episode log without its runner arrays)")
+    with np.load(extras_path, allow_pickle=False) as z:
+        extras = {k: z[k] for k in z.files}
+    return Episode(traj, extras, meta)

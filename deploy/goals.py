@@ -1,0 +1,96 @@
+"""Goals for the episodes of a session: from the command line, a file or a list.
+
+A goal is (x, y) in metres on the opponent's half (docs/DESIGN.md frame). One goal per episode;
+`episode_goals` repeats each goal (the paper's five-goal evaluation: 5 goals x 5 attempts).
+"""
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+
+from ttmjx.config import Table, opponent_half
+
+
+def check_goals(goals) -> np.ndarray:
+    """[N, 2] finite float32 goals (N >= 1); ValueError names the problem.
+
+    (ttmjx.env.check_goals does the same but imports JAX; the runner stays numpy-only.)
+    """
+    try:
+        g = np.asarray(goals, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"goals must be numbers of shape [N, 2] (x, y in metres): {e}") from None
+    if g.ndim == 1 and g.shape == (2,):
+        g = g[None]
+    if g.ndim != 2 or g.shape[1] != 2 or g.shape[0] < 1:
+        raise ValueError(f"goals must have shape [N, 2] (x, y in metres), got {g.shape}")
+    if not np.all(np.isfinite(g)):
+        bad = np.argwhere(~np.isfinite(g))[0]
+        raise ValueError(f"goals[{bad[0]}, {bad[1]}] = {g[tuple(bad)]} is not finite")
+    return g.astype(np.float32)
+
+
+def parse_goals(spec: str) -> np.ndarray:
+    """'x,y' or 'x,y;x,y;...' -> [N, 2]."""
+    rows = [r.strip() for r in spec.replace("\n", ";").split(";") if r.strip()]
+    if not rows:
+        raise ValueError(f"goal spec {spec!r} holds no goals; expected 'x,y' or 'x,y;x,y;...'")
+    goals = []
+    for r in rows:
+        parts = [p for p in r.replace(",", " ").split() if p]
+        if len(parts) != 2:
+            raise ValueError(f"goal {r!r} in {spec!r} must be two numbers 'x,y'")
+        try:
+            goals.append([float(p) for p in parts])
+        except ValueError as e:
+            raise ValueError(f"goal {r!r} in {spec!r} is not two numbers ({e})") from None
+    return check_goals(goals)
+
+
+def load_goals(path: str) -> np.ndarray:
+    """[N, 2] goals from a .json ([[x, y], ...] or {"goals": [...]}), .npy, or .csv/.txt file
+    (one 'x,y' per line, '#' comments)."""
+    ext = os.path.splitext(path)[1].lower()
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"goal file {path!r} does not exist")
+    if ext == ".json":
+        with open(path) as f:
+            data = json.load(f)
+        if isinstance(data, dict):
+            if "goals" not in data:
+                raise ValueError(f"{path}: a JSON object needs a 'goals' key, got keys {sorted(data)}")
+            data = data["goals"]
+        return check_goals(data)
+    if ext == ".npy":
+        return check_goals(np.load(path, allow_pickle=False))
+    if ext in (".csv", ".txt"):
+        with open(path) as f:
+            lines = [ln.split("#")[0].strip() for ln in f]
+        return parse_goals(";".join(ln for ln in lines if ln))
+    raise ValueError(f"goal file {path!r}: unknown extension {ext!r}; use .json, .npy, .csv or .txt")
+
+
+def goals_from_arg(arg: str) -> np.ndarray:
+    """A path to an existing goal file, or an inline spec 'x,y;x,y'."""
+    return load_goals(arg) if os.path.isfile(arg) else parse_goals(arg)
+
+
+def check_goal_region(goals, table: Table = Table()) -> np.ndarray:
+    """[N, 2] goals, each on the opponent's half; ValueError names the first one outside."""
+    g = check_goals(goals)
+    (x0, x1), (y0, y1) = opponent_half(table)
+    bad = (g[:, 0] < x0) | (g[:, 0] > x1) | (g[:, 1] < y0) | (g[:, 1] > y1)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        raise ValueError(f"goal {i} = ({g[i, 0]}, {g[i, 1]}) is off the opponent's half "
+                         f"x in [{x0}, {x1}], y in [{y0:.4f}, {y1:.4f}]")
+    return g
+
+
+def episode_goals(goals, repeat: int = 1) -> np.ndarray:
+    """[N * repeat, 2]: each goal `repeat` times in a row (A A A B B B ...)."""
+    if repeat < 1:
+        raise ValueError(f"repeat={repeat}, expected >= 1")
+    return np.repeat(check_goals(goals), repeat, axis=0)

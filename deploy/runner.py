@@ -1,0 +1,472 @@
+"""The physical-robot runner: a deadline-paced control loop around a numpy policy.
+
+Timing. Tick n of an episode has the deadline t0 + n * dt (dt = 1 / contract.control_hz): the
+schedule never drifts. Observations are interpolated to the deadline, not to the (jittery) wake
+time, so the policy sees frames exactly dt apart as in simulation. A tick that wakes after the
+NEXT deadline has passed is skipped (its row is logged from the buffered samples, its frame
+still enters the frame stack, the robot holds its target, the policy is not called); lateness is
+counted, never accumulated into the schedule. A command that leaves after the next deadline
+counts as an overrun.
+
+Inputs. Joint feedback (Robot.read) and ball samples (BallTracker.read) are validated one by
+one (deploy.safety.FAULTS), buffered, and linearly interpolated to each deadline.
+
+Safety. See deploy/safety.py for the command filter and deploy/modes.py for the state machine.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from collections import Counter
+from typing import Any, Callable, Protocol
+
+import numpy as np
+
+from deploy.contract import Contract, contract_to_dict
+from deploy.episode_log import Episode, EpisodeLog, save_episode
+from deploy.goals import check_goals
+from deploy.hardware import BallTracker, Clock, Robot
+from deploy.interp import Interpolated, SampleBuffer
+from deploy.modes import Mode, StateMachine
+from deploy.safety import FAULTS, LATCHING, fault_names, limits_from_contract, safe_target
+
+
+class NumpyPolicy(Protocol):
+    """A policy on the robot (numpy only): recurrent state and/or a frame stack."""
+
+    def reset(self) -> Any:
+        """The state at the start of an episode (e.g. zero LSTM carry; None if stateless)."""
+
+    def step(self, state: Any, frame: np.ndarray, frames: np.ndarray) -> tuple[Any, np.ndarray]:
+        """frame [13] (= frames[-1]), frames [k, 13] oldest first -> (state, action [8])."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RunnerConfig:
+    """Bounds and tolerances of the runner (the contract holds rates and joint limits)."""
+    stale_s: float = 0.1            # joint or ball data older than this -> hold
+    future_s: float = 0.005         # a sample stamped later than now + this is rejected
+    jump_factor: float = 1.5        # feedback may move at most jump_factor * max_speed ...
+    jump_tolerance: float = 0.02    # ... + this between two samples (m or rad)
+    range_tolerance: float = 0.02   # feedback this far outside the ranges is a fault
+    settle_reads: int = 3           # agreeing fresh joint samples before the first command
+    home_speed: float = 0.3         # fraction of the command speed limits used to move home
+    home_tolerance: float = 0.02    # |q - home| per joint that counts as home
+    home_timeout_s: float = 10.0
+    arm_timeout_s: float = 10.0     # waiting for a ball
+    trigger_speed: float = 1.0      # m/s toward the robot (-x) that starts an episode
+    ball_box: tuple = ((-4.0, 4.0), (-3.0, 3.0), (0.0, 4.0))   # plausible ball x, y, z (m)
+    max_ball_speed: float = 40.0    # m/s between two ball samples
+    max_extrapolate_s: float = 0.02 # follow the last two samples this far past the newest
+
+    def __post_init__(self):
+        for name in ("stale_s", "future_s", "jump_factor", "home_timeout_s", "arm_timeout_s",
+                     "max_ball_speed"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"RunnerConfig.{name}={getattr(self, name)}, expected > 0")
+        if not 0 < self.home_speed <= 1:
+            raise ValueError(f"RunnerConfig.home_speed={self.home_speed}, expected in (0, 1]")
+        if self.max_extrapolate_s < 0:
+            raise ValueError(f"RunnerConfig.max_extrapolate_s={self.max_extrapolate_s}, expected >= 0")
+        if self.settle_reads < 1:
+            raise ValueError(f"RunnerConfig.settle_reads={self.settle_reads}, expected >= 1")
+
+
+class NoBallError(TimeoutError):
+    """No ball came toward the robot within arm_timeout_s (the runner stays ARMED)."""
+
+
+def frame_of(joints: np.ndarray, ball: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    """[13] observation frame: joints (8), ball position (3), goal (2) (docs/DESIGN.md)."""
+    return np.concatenate([joints, ball, goal]).astype(np.float32)
+
+
+class FrameStack:
+    """The last k frames [k, size], oldest first; the first push fills every row (the padding
+    of ttmjx.record.frame_stack)."""
+
+    def __init__(self, k: int, size: int = 13):
+        self.frames = np.zeros((k, size), np.float32)
+        self._empty = True
+
+    def push(self, frame: np.ndarray) -> np.ndarray:
+        """Add a frame [size]; returns a copy of the stack [k, size]."""
+        if self._empty:
+            self.frames[:] = frame
+            self._empty = False
+        else:
+            self.frames[:-1] = self.frames[1:]
+            self.frames[-1] = frame
+        return self.frames.copy()
+
+
+def _missing(dim: int) -> Interpolated:
+    nan = np.full(dim, np.nan)
+    return Interpolated(nan, np.zeros(dim), np.nan, np.nan, nan, nan)
+
+
+class Runner:
+    """Runs episodes of `policy` on `robot` with balls from `tracker`, paced by `clock`."""
+
+    def __init__(self, robot: Robot, tracker: BallTracker, clock: Clock, policy: NumpyPolicy,
+                 contract: Contract, config: RunnerConfig = RunnerConfig(),
+                 policy_hash: str | None = None):
+        self.robot, self.tracker, self.clock, self.policy = robot, tracker, clock, policy
+        self.contract, self.config = contract, config
+        self.policy_hash = policy_hash or getattr(policy, "policy_hash", None) or "unknown"
+        self.limits = limits_from_contract(contract)
+        self.true_speed = np.asarray(contract.max_speed, np.float64)
+        self.home = np.asarray(contract.home, np.float64)
+        self.sm = StateMachine()
+        self.joints, self.ball = SampleBuffer(8), SampleBuffer(3)
+        self.last_target: np.ndarray | None = None     # the last command sent [8]
+        self.t_last_sent: float | None = None
+        self.fault_counts: Counter = Counter()          # fault name -> ticks (or samples) with it
+        self.overruns = self.skipped = self.episodes = 0
+        self._log: EpisodeLog | None = None
+
+    @property
+    def mode(self) -> Mode:
+        return self.sm.mode
+
+    # ------------------------------------------------------------------ commands
+    def hold(self, reason: str) -> None:
+        """Enter HOLD (from any mode): re-send the last safe target once, then send nothing."""
+        now = self.clock.now()
+        if self.last_target is not None:
+            self._send(self.last_target, now)
+        self.sm.to(Mode.HOLD, now, reason)
+
+    def release(self) -> None:
+        """HOLD -> IDLE (an operator's explicit command)."""
+        self.sm.require(Mode.HOLD, action="release()")
+        self.sm.to(Mode.IDLE, self.clock.now(), "release")
+
+    def disarm(self) -> None:
+        """ARMED -> IDLE (e.g. after NoBallError)."""
+        self.sm.require(Mode.ARMED, action="disarm()")
+        self.sm.to(Mode.IDLE, self.clock.now(), "disarm")
+
+    def move_home(self) -> bool:
+        """IDLE or HOLD -> HOMING -> ARMED (True), or -> HOLD on a fault or timeout (False)."""
+        self.sm.require(Mode.IDLE, Mode.HOLD, action="move_home()")
+        with self._hold_on_error():
+            return self._move_home()
+
+    def run_episode(self, goal) -> Episode | None:
+        """ARMED: wait for a ball, then run one episode toward goal [2].
+
+        Returns the Episode (mode then IDLE, or HOLD after a fault), or None if a fault while
+        waiting put the runner in HOLD. Raises NoBallError (still ARMED) if no ball came.
+        """
+        goal = check_goals(goal)
+        if goal.shape[0] != 1:
+            raise ValueError(f"run_episode takes one goal (x, y), got {goal.shape[0]}")
+        self.sm.require(Mode.ARMED, action="run_episode()")
+        with self._hold_on_error():
+            if not self._wait_for_ball():
+                return None
+            return self._run(goal[0])
+
+    def run_episodes(self, goals, out_dir: str | None = None,
+                     on_armed: Callable[[int], None] | None = None,
+                     prefix: str = "episode") -> list[Episode]:
+        """One episode per goal [N, 2]: move home, (on_armed(i)), run, save as
+        `<prefix>_<i:04d>` under out_dir. Stops early (returning what ran) if the runner ends up
+        in HOLD, since only an operator may clear a hold."""
+        episodes = []
+        for i, goal in enumerate(check_goals(goals)):
+            if self.mode == Mode.HOLD or not self.move_home():
+                break
+            if on_armed is not None:
+                on_armed(i)
+            ep = self.run_episode(goal)
+            if ep is None:
+                break
+            ep.meta["episode"] = i
+            if out_dir is not None:
+                save_episode(out_dir, f"{prefix}_{i:04d}", ep)
+            episodes.append(ep)
+            if self.mode == Mode.HOLD:
+                break
+        return episodes
+
+    # ------------------------------------------------------------------ inputs
+    def _poll_joints(self, now: float) -> int:
+        """Read the robot once; returns fault bits (joint_stale if the newest accepted sample
+        is too old)."""
+        t, q = self.robot.read()
+        q = np.asarray(q, np.float64)
+        if q.shape != (8,):
+            raise ValueError(f"Robot.read() returned joints of shape {q.shape}, expected (8,)")
+        t = float(t)
+        faults = self._joint_faults(t, q, now)
+        repeat = faults == 0 and t == self.joints.newest_time   # the same sample read again
+        if not repeat:
+            if self._log is not None:
+                self._log.add_joint(t, q, faults == 0)
+            if faults == 0:
+                self.joints.add(t, q)
+        if now - self.joints.newest_time > self.config.stale_s:
+            faults |= FAULTS["joint_stale"]
+        return faults
+
+    def _joint_faults(self, t: float, q: np.ndarray, now: float) -> int:
+        """Fault bits of one new joint sample (0 = accept)."""
+        cfg, lim = self.config, self.limits
+        if not (np.isfinite(t) and np.all(np.isfinite(q))):
+            return FAULTS["joint_nonfinite"]
+        newest = self.joints.newest_time
+        if t > now + cfg.future_s or t < newest:
+            return FAULTS["joint_time"]
+        if np.any((q < lim.lower - cfg.range_tolerance) | (q > lim.upper + cfg.range_tolerance)):
+            return FAULTS["joint_out_of_range"]
+        if len(self.joints):    # (at equal times only jump_tolerance is allowed)
+            allowed = cfg.jump_factor * self.true_speed * (t - newest) + cfg.jump_tolerance
+            if np.any(np.abs(q - self.joints.newest) > allowed):
+                return FAULTS["joint_jump"]
+        return 0
+
+    def _poll_ball(self, now: float) -> int:
+        """Read the tracker once; accepted samples are buffered. Returns ball_dropped if any
+        sample was rejected (not a latching fault: staleness decides)."""
+        ts, xyz = self.tracker.read()
+        ts = np.asarray(ts, np.float64).reshape(-1)
+        xyz = np.asarray(xyz, np.float64)
+        if xyz.shape != (len(ts), 3):
+            raise ValueError(f"BallTracker.read() returned {len(ts)} times and positions of shape "
+                             f"{xyz.shape}, expected ({len(ts)}, 3)")
+        faults = 0
+        for t, x in zip(ts, xyz):
+            ok = self._ball_ok(float(t), x, now)
+            if self._log is not None:
+                self._log.add_ball(float(t), x, ok)
+            if ok:
+                self.ball.add(float(t), x)
+            else:
+                faults |= FAULTS["ball_dropped"]
+                self.fault_counts["ball_dropped_samples"] += 1
+        return faults
+
+    def _ball_ok(self, t: float, x: np.ndarray, now: float) -> bool:
+        cfg = self.config
+        if not (np.isfinite(t) and np.all(np.isfinite(x))):
+            return False
+        newest = self.ball.newest_time
+        if t > now + cfg.future_s or t <= newest:
+            return False
+        box = np.asarray(cfg.ball_box)
+        if np.any((x < box[:, 0]) | (x > box[:, 1])):
+            return False
+        if len(self.ball) and np.linalg.norm(x - self.ball.newest) > cfg.max_ball_speed * (t - newest):
+            return False
+        return True
+
+    def _ball_stale(self, now: float) -> int:
+        return FAULTS["ball_stale"] if now - self.ball.newest_time > self.config.stale_s else 0
+
+    def _at(self, buf: SampleBuffer, t: float) -> Interpolated:
+        return buf.at(t, self.config.max_extrapolate_s) if len(buf) else _missing(buf.dim)
+
+    # ------------------------------------------------------------------ output
+    def _send(self, target: np.ndarray, now: float) -> None:
+        self.robot.send(target.copy())
+        self.last_target, self.t_last_sent = target.copy(), now
+
+    def _elapsed(self, now: float) -> float | None:
+        return None if self.t_last_sent is None else now - self.t_last_sent
+
+    @contextlib.contextmanager
+    def _hold_on_error(self):
+        """Any exception (driver error, bad shape, Ctrl-C) leaves the robot in HOLD."""
+        try:
+            yield
+        except NoBallError:
+            raise                       # not a fault: the robot waits at home, still ARMED
+        except BaseException as e:
+            self._log = None
+            if self.mode != Mode.HOLD:
+                with contextlib.suppress(Exception):
+                    self.hold(f"error: {type(e).__name__}: {e}")
+            raise
+
+    def _count(self, bits: int) -> None:
+        for name in fault_names(bits):
+            self.fault_counts[name] += 1
+
+    # ------------------------------------------------------------------ loops
+    def _paced(self, timeout_s: float):
+        """Yield (n, now) on the deadline grid t0 + n * dt, skipping deadlines already passed,
+        until timeout_s; then yield (-1, now) once."""
+        dt, t0 = self.contract.dt, self.clock.now()
+        n = 0
+        while True:
+            self.clock.sleep_until(t0 + n * dt)
+            now = self.clock.now()
+            if now - t0 > timeout_s:
+                yield -1, now
+                return
+            yield n, now
+            n = max(n + 1, int(np.floor((self.clock.now() - t0) / dt)) + 1)
+
+    def _move_home(self) -> bool:
+        cfg = self.config
+        self.sm.to(Mode.HOMING, self.clock.now(), "move_home")
+        settle, settled = [], False   # fresh agreeing joint samples before the first command
+        for n, now in self._paced(cfg.home_timeout_s):
+            if n < 0:
+                self.hold("homing timeout")
+                return False
+            before = self.joints.newest_time
+            faults = self._poll_joints(now) & LATCHING
+            self._poll_ball(now)
+            if faults:
+                self._count(faults)
+                self.hold("homing: " + ",".join(fault_names(faults)))
+                return False
+            if not settled:
+                if self.joints.newest_time > before:
+                    settle.append(self.joints.newest)
+                if len(settle) < cfg.settle_reads:
+                    continue
+                recent = np.array(settle[-cfg.settle_reads:])
+                if np.any(recent.max(0) - recent.min(0) > cfg.jump_tolerance):
+                    continue
+                settled = True
+                here = np.clip(recent[-1], self.limits.lower, self.limits.upper)
+                if self.last_target is None:
+                    self.last_target = here     # first command of this runner: start where it is
+                elif np.any(np.abs(here - self.last_target) > self.limits.max_step + cfg.jump_tolerance):
+                    self._count(FAULTS["joint_mismatch"])
+                    self.hold("homing: joint_mismatch (the robot is not where it was last "
+                              "commanded; restart the runner after moving it by hand)")
+                    return False
+            cmd = safe_target(self.limits, self.home, self.last_target, self._elapsed(now), cfg.home_speed)
+            self._send(cmd.target, now)
+            if (np.array_equal(cmd.target, self.home)
+                    and np.all(np.abs(self.joints.newest - self.home) <= cfg.home_tolerance)):
+                self.sm.to(Mode.ARMED, now, "at home")
+                return True
+        raise AssertionError("unreachable")
+
+    def _wait_for_ball(self) -> bool:
+        """ARMED until a fresh ball moves toward the robot (True); HOLD on a fault (False)."""
+        cfg = self.config
+        for n, now in self._paced(cfg.arm_timeout_s):
+            if n < 0:
+                raise NoBallError(f"no ball moving toward the robot faster than "
+                                  f"{cfg.trigger_speed} m/s within {cfg.arm_timeout_s} s")
+            faults = self._poll_joints(now) & LATCHING
+            if faults:
+                self._count(faults)
+                self.hold("armed: " + ",".join(fault_names(faults)))
+                return False
+            self._poll_ball(now)
+            if len(self.ball) >= 2 and not self._ball_stale(now):
+                vx = (self.ball.values[-1, 0] - self.ball.values[-2, 0]) / (
+                    self.ball.times[-1] - self.ball.times[-2])
+                if vx < -cfg.trigger_speed:
+                    return True
+        raise AssertionError("unreachable")
+
+    def _run(self, goal: np.ndarray) -> Episode:
+        c = self.contract
+        T, dt = c.horizon, c.dt
+        log = self._log = EpisodeLog(T, goal)
+        stack = FrameStack(c.frame_stack)
+        t0 = self.clock.now()
+        self.sm.to(Mode.RUNNING, t0, "ball in play")
+        history_start = len(self.sm.history) - 1
+        self._state, reset_fault = None, 0
+        try:
+            self._state = self.policy.reset()
+        except Exception:
+            reset_fault = FAULTS["policy_error"]
+        end, n = "done", 0
+        while n < T:
+            self.clock.sleep_until(t0 + n * dt)
+            wake = self.clock.now()
+            faults = (self._poll_joints(wake) | self._poll_ball(wake) | self._ball_stale(wake)
+                      | reset_fault)
+            latest = min(T, int(np.floor((wake - t0) / dt)))   # the newest deadline passed
+            for m in range(n, latest):                         # deadlines missed entirely
+                self._record_skipped(log, stack, m, t0 + m * dt, goal)
+            n = max(n, latest)
+            if n >= T:
+                break
+            faults |= self._tick(log, stack, n, t0 + n * dt, wake, goal, faults)
+            if faults & LATCHING:
+                end = "hold: " + ",".join(fault_names(faults & LATCHING))
+                break
+            n += 1
+        self._log = None
+        if end == "done":
+            self.sm.to(Mode.IDLE, self.clock.now(), "episode done")
+        else:
+            self.hold(end)
+        self.episodes += 1
+        return Episode(log.trajectories(), log.extras(), self._meta(log, goal, t0, end, history_start))
+
+    def _record_skipped(self, log: EpisodeLog, stack: FrameStack, m: int, t_grid: float,
+                        goal: np.ndarray) -> None:
+        joint, ball = self._at(self.joints, t_grid), self._at(self.ball, t_grid)
+        frame = frame_of(joint.value, ball.value, goal)
+        stack.push(frame)
+        log.tick(m, t_grid=t_grid, frame=frame, ball=ball, joint=joint, command=self.last_target,
+                 faults=FAULTS["skipped"], executed=False)
+        self.skipped += 1
+        self._count(FAULTS["skipped"])
+
+    def _tick(self, log: EpisodeLog, stack: FrameStack, n: int, t_grid: float, wake: float,
+              goal: np.ndarray, faults: int) -> int:
+        """One executed tick: frame -> policy -> filter -> send. Returns its fault bits."""
+        joint, ball = self._at(self.joints, t_grid), self._at(self.ball, t_grid)
+        frame = frame_of(joint.value, ball.value, goal)
+        frames = stack.push(frame)
+        raw = None
+        if not faults & LATCHING:
+            raw, faults = self._policy_action(frame, frames, faults)
+        now = self.clock.now()
+        t_sent = np.nan
+        if not faults & LATCHING:
+            cmd = safe_target(self.limits, raw, self.last_target, self._elapsed(now))
+            faults |= cmd.faults
+            if not faults & LATCHING:
+                self._send(cmd.target, now)
+                t_sent = now
+        if now > t_grid + self.contract.dt:
+            faults |= FAULTS["overrun"]
+            self.overruns += 1
+        log.tick(n, t_grid=t_grid, frame=frame, ball=ball, joint=joint, command=self.last_target,
+                 faults=faults, executed=True, t_wake=wake, t_sent=t_sent, raw_action=raw)
+        self._count(faults)
+        return faults
+
+    def _policy_action(self, frame, frames, faults) -> tuple[np.ndarray | None, int]:
+        """The policy's raw action [8] (None if it failed) and the updated fault bits; the new
+        recurrent state is kept in self._state."""
+        try:
+            self._state, action = self.policy.step(self._state, frame.copy(), frames)
+            raw = np.asarray(action, np.float64)
+        except Exception:
+            return None, faults | FAULTS["policy_error"]
+        if raw.shape != (8,):
+            return None, faults | FAULTS["policy_error"]
+        if not np.all(np.isfinite(raw)):
+            faults |= FAULTS["policy_nonfinite"]
+        return raw, faults
+
+    def _meta(self, log: EpisodeLog, goal, t0: float, end: str, history_start: int) -> dict:
+        lat = log.t_sent - log.t_grid
+        per_fault = {name: int(np.sum((log.faults & bit) != 0)) for name, bit in FAULTS.items()}
+        return {
+            "source": "deploy.runner", "policy_hash": self.policy_hash,
+            "episode": self.episodes, "goal": [float(g) for g in goal], "t0": float(t0),
+            "end": end, "ticks": int(log.valid.sum()), "executed": int(log.executed.sum()),
+            "faults": per_fault,
+            "max_latency_s": float(np.nanmax(lat)) if np.any(np.isfinite(lat)) else None,
+            "events_detected": False,   # hit/landing are not measured by the runner
+            "contract": contract_to_dict(self.contract),
+            "runner": dataclasses.asdict(self.config),
+            "transitions": [list(h) for h in self.sm.history[history_start:]],
+        }

@@ -1,0 +1,73 @@
+"""The two networks, in normalized units: one control step and a whole sequence.
+
+Both take per step `x [S, O]` (S = PolicyConfig.input_frames: 1 for the LSTM, the frame stack
+for the MLP) and return a normalized action [8]. Training (a sequence) and rollouts (one step at
+a time) call the same step function, so the two cannot drift apart.
+"""
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from models.config import ACTION_SIZE, PolicyConfig
+
+
+class LSTMNet(nn.Module):
+    """`layers` stacked LSTM cells and a linear head (the paper's policy)."""
+    hidden: int
+    layers: int
+
+    @nn.compact
+    def __call__(self, carry, x):
+        new_carry = []
+        for i in range(self.layers):
+            c, x = nn.OptimizedLSTMCell(self.hidden, name=f"lstm{i}")(carry[i], x)
+            new_carry.append(c)
+        return tuple(new_carry), nn.Dense(ACTION_SIZE, name="head")(x)
+
+
+class MLPNet(nn.Module):
+    """`layers` ReLU layers of `hidden` units and a linear head."""
+    hidden: int
+    layers: int
+
+    @nn.compact
+    def __call__(self, x):
+        for i in range(self.layers):
+            x = nn.relu(nn.Dense(self.hidden, name=f"dense{i}")(x))
+        return nn.Dense(ACTION_SIZE, name="head")(x)
+
+
+def zero_carry(cfg: PolicyConfig):
+    """The recurrent state at an episode start: per LSTM layer (c [H], h [H]); () for the MLP."""
+    if cfg.kind != "lstm":
+        return ()
+    z = jnp.zeros(cfg.hidden, jnp.float32)
+    return tuple((z, z) for _ in range(cfg.layers))
+
+
+def init_net(key, cfg: PolicyConfig):
+    """Fresh network parameters (a flax params dict) for one member."""
+    x = jnp.zeros((cfg.input_frames, cfg.obs_size), jnp.float32)
+    if cfg.kind == "lstm":
+        return LSTMNet(cfg.hidden, cfg.layers).init(key, zero_carry(cfg), x[0])
+    return MLPNet(cfg.hidden, cfg.layers).init(key, x.reshape(-1))
+
+
+def net_step(cfg: PolicyConfig, net_params, carry, x):
+    """One control step: x [S, O] normalized -> (carry, normalized action [8])."""
+    want = (cfg.input_frames, cfg.obs_size)
+    if tuple(x.shape) != want:
+        raise ValueError(f"net_step: input has shape {tuple(x.shape)}, expected {want} "
+                         f"(frames, obs_size) for kind={cfg.kind!r}")
+    if cfg.kind == "lstm":
+        return LSTMNet(cfg.hidden, cfg.layers).apply(net_params, carry, x[0])
+    return carry, MLPNet(cfg.hidden, cfg.layers).apply(net_params, x.reshape(-1))
+
+
+def net_sequence(cfg: PolicyConfig, net_params, xs):
+    """A sequence from a zero state: xs [L, S, O] normalized -> normalized actions [L, 8]."""
+    if cfg.kind != "lstm":  # no state: every step independently
+        return jax.vmap(lambda x: net_step(cfg, net_params, (), x)[1])(xs)
+    return jax.lax.scan(lambda c, x: net_step(cfg, net_params, c, x), zero_carry(cfg), xs)[1]

@@ -1,0 +1,118 @@
+"""Policies for rollouts (docs/DESIGN.md `Policy`), parameters and ensembles.
+
+`PolicyParams` = network weights + the fixed `Normalizer`. An ensemble of N members is ONE
+`PolicyParams` whose every leaf has a leading [N] axis; it is created, trained and applied with
+vmap. A `Policy` is written for one member and one throw; batch it with vmap.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from models.config import ACTION_SIZE, PolicyConfig
+from models.networks import init_net, net_sequence, net_step, zero_carry
+from models.normalizer import Normalizer, denormalize_actions, normalize_obs
+
+
+class PolicyParams(NamedTuple):
+    net: Any              # flax params dict (the only part the optimizer updates)
+    norm: Normalizer      # fixed statistics from data
+
+
+class Policy(NamedTuple):
+    """docs/DESIGN.md: init(params, key) -> carry; apply(params, carry, obs, key) -> (carry, action [8])."""
+    init: Callable
+    apply: Callable
+
+
+def observation_vector(frame, ball_vel, obs_size: int):
+    """frame [..., 13] (joints, ball pos, goal), ball_vel [..., 3] -> [..., obs_size].
+
+    16 values insert the ball velocity after the ball position: joints, ball pos, ball vel, goal.
+    """
+    if frame.shape[-1] != 13:
+        raise ValueError(f"observation_vector: frame has shape {tuple(frame.shape)}, expected [..., 13]")
+    if obs_size == 13:
+        return frame
+    if ball_vel.shape[-1] != 3:
+        raise ValueError(f"observation_vector: ball_vel has shape {tuple(ball_vel.shape)}, expected [..., 3]")
+    return jnp.concatenate([frame[..., :11], ball_vel, frame[..., 11:]], axis=-1)
+
+
+def init_params(key, cfg: PolicyConfig, norm: Normalizer) -> PolicyParams:
+    """One member's parameters."""
+    if norm.obs_mean.shape != (cfg.obs_size,) or norm.act_mean.shape != (ACTION_SIZE,):
+        raise ValueError(f"init_params: normalizer has obs_mean {norm.obs_mean.shape} and act_mean "
+                         f"{norm.act_mean.shape}, expected ({cfg.obs_size},) and ({ACTION_SIZE},)")
+    return PolicyParams(init_net(key, cfg), jax.tree.map(jnp.asarray, norm))
+
+
+def init_ensemble(key, cfg: PolicyConfig, norm: Normalizer, members: int) -> PolicyParams:
+    """N members with independent initial weights: every leaf gets a leading [N] axis."""
+    if members < 1:
+        raise ValueError(f"init_ensemble: members={members}, expected >= 1")
+    return jax.vmap(lambda k: init_params(k, cfg, norm))(jax.random.split(key, members))
+
+
+def ensemble_size(params: PolicyParams) -> int:
+    """N, the leading axis of an ensemble's leaves."""
+    return int(jax.tree.leaves(params.net)[0].shape[0])
+
+
+def member(params: PolicyParams, i: int) -> PolicyParams:
+    """Member i of an ensemble (leaves lose the leading [N] axis)."""
+    return jax.tree.map(lambda x: x[i], params)
+
+
+def predict_sequence(cfg: PolicyConfig, params: PolicyParams, frames):
+    """frames [L, S, O] raw, from a zero state -> normalized predicted actions [L, 8]."""
+    return net_sequence(cfg, params.net, normalize_obs(params.norm, frames))
+
+
+def _step_input(cfg: PolicyConfig, obs):
+    """env.Obs -> the network input [S, O] (raw)."""
+    if cfg.kind == "lstm":
+        return observation_vector(obs.frame, obs.ball_vel, cfg.obs_size)[None]
+    if tuple(obs.frames.shape) != (cfg.frame_stack, 13):
+        raise ValueError(f"policy: obs.frames has shape {tuple(obs.frames.shape)}, expected "
+                         f"({cfg.frame_stack}, 13) for PolicyConfig.frame_stack={cfg.frame_stack}")
+    return obs.frames
+
+
+def make_policy(cfg: PolicyConfig) -> Policy:
+    """A deterministic Policy for one member and one throw (params without a leading axis).
+
+    Reads obs.frame [13] and obs.ball_vel [3] (lstm) or obs.frames [k, 13] (framestack); any
+    object with those attributes works. The key is unused.
+    """
+    def init(params, key):
+        return zero_carry(cfg)
+
+    def apply(params, carry, obs, key):
+        x = normalize_obs(params.norm, _step_input(cfg, obs))
+        carry, a = net_step(cfg, params.net, carry, x)
+        return carry, denormalize_actions(params.norm, a)
+
+    return Policy(init, apply)
+
+
+def with_action_noise(policy: Policy, scale: float) -> Policy:
+    """Exploration ("New Results"): a + z, z ~ U(-b a_std, b a_std) drawn ONCE per episode.
+
+    The carry is (inner carry, z [8]); z is drawn in init from the key and added unchanged to
+    every action of the episode. a_std = params.norm.act_std, the action std of the data.
+    """
+    def init(params, key):
+        k_inner, k_noise = jax.random.split(key)
+        bound = scale * params.norm.act_std
+        z = jax.random.uniform(k_noise, (ACTION_SIZE,), minval=-bound, maxval=bound)
+        return policy.init(params, k_inner), z
+
+    def apply(params, carry, obs, key):
+        inner, z = carry
+        inner, a = policy.apply(params, inner, obs, key)
+        return (inner, z), a + z
+
+    return Policy(init, apply)

@@ -1,0 +1,128 @@
+"""Policies: configuration, normalization, ensembles, the rollout adapter and its noise."""
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from models import (Normalizer, PolicyConfig, ensemble_size, identity_normalizer, init_ensemble,
+                    make_policy, member, normalizer_from_data, observation_vector,
+                    predict_sequence, with_action_noise)
+from models.normalizer import denormalize_actions
+from ttmjx.record import frame_stack
+
+
+class Obs(NamedTuple):   # the fields of ttmjx.env.Obs the policies read
+    frame: jnp.ndarray   # [13]
+    ball_vel: jnp.ndarray  # [3]
+    frames: jnp.ndarray  # [k, 13]
+    t: jnp.ndarray
+
+
+def random_norm(key, obs_size):
+    k = jax.random.split(key, 4)
+    return Normalizer(jax.random.normal(k[0], (obs_size,)), 1 + jax.random.uniform(k[1], (obs_size,)),
+                      jax.random.normal(k[2], (8,)), 0.5 + jax.random.uniform(k[3], (8,)))
+
+
+def test_policy_config_rejects_bad_values():
+    with pytest.raises(ValueError, match="kind='gru'"):
+        PolicyConfig("gru")
+    with pytest.raises(ValueError, match="obs_size=14"):
+        PolicyConfig(obs_size=14)
+    with pytest.raises(ValueError, match="needs obs_size=13"):
+        PolicyConfig("framestack", obs_size=16)
+    assert PolicyConfig("lstm").input_frames == 1 and PolicyConfig("framestack").input_frames == 8
+
+
+def test_observation_vector_orders_joints_ball_velocity_goal():
+    frame, vel = jnp.arange(13.0), 100 + jnp.arange(3.0)
+    assert observation_vector(frame, vel, 13) is frame
+    np.testing.assert_array_equal(observation_vector(frame, vel, 16),
+                                  [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 100, 101, 102, 11, 12])
+
+
+def test_normalizer_from_data_uses_valid_steps_and_floors_std():
+    obs = jnp.array([[[1.0, 5.0], [3.0, 5.0], [100.0, -9.0]]])       # [1, 3, 2]
+    actions = jnp.tile(jnp.array([[[0.0], [2.0], [50.0]]]), (1, 1, 8))
+    mask = jnp.array([[True, True, False]])
+    n = normalizer_from_data(obs, actions, mask, min_std=1e-3)
+    np.testing.assert_allclose(n.obs_mean, [2.0, 5.0])
+    np.testing.assert_allclose(n.obs_std, [1.0, 1e-3])                # constant column -> floor
+    np.testing.assert_allclose(n.act_mean, np.full(8, 1.0))
+    np.testing.assert_allclose(n.act_std, np.full(8, 1.0))
+    with pytest.raises(ValueError, match="normalizer_from_data"):
+        normalizer_from_data(obs, actions[..., :3], mask)
+
+
+@pytest.mark.parametrize("kind,obs_size", [("lstm", 13), ("lstm", 16), ("framestack", 13)])
+def test_ensemble_shapes_and_members_differ(kind, obs_size):
+    cfg = PolicyConfig(kind, hidden=16, layers=2, obs_size=obs_size, frame_stack=4)
+    params = init_ensemble(jax.random.PRNGKey(0), cfg, identity_normalizer(obs_size), 3)
+    assert ensemble_size(params) == 3
+    assert all(x.shape[0] == 3 for x in jax.tree.leaves(params))
+    assert params.norm.obs_mean.shape == (3, obs_size)
+    head = params.net["params"]["head"]["kernel"]                      # [3, H, 8]
+    assert head.shape == (3, 16, 8) and not np.allclose(head[0], head[1])
+    x = jax.random.normal(jax.random.PRNGKey(1), (5, cfg.input_frames, obs_size))
+    out = jax.vmap(lambda p: predict_sequence(cfg, p, x))(params)       # [N, L, 8]
+    assert out.shape == (3, 5, 8) and not np.allclose(out[0], out[1])
+    with pytest.raises(ValueError, match=f"obs_mean \\(3,\\).*expected \\({obs_size},\\)"):
+        init_ensemble(jax.random.PRNGKey(0), cfg, identity_normalizer(3), 2)
+
+
+@pytest.mark.parametrize("kind,obs_size", [("lstm", 16), ("framestack", 13)])
+def test_rollout_adapter_matches_training_sequence(kind, obs_size):
+    """Stepping the Policy through an episode gives the actions the loss trains on."""
+    cfg = PolicyConfig(kind, hidden=16, layers=2, obs_size=obs_size, frame_stack=3)
+    norm = random_norm(jax.random.PRNGKey(2), obs_size)
+    params = member(init_ensemble(jax.random.PRNGKey(0), cfg, norm, 2), 1)
+    t = 10
+    obs = jax.random.normal(jax.random.PRNGKey(1), (t, 13))
+    vel = jax.random.normal(jax.random.PRNGKey(3), (t, 3))
+    stacks = frame_stack(obs[None], 3)[0]                                # [T, 3, 13]
+    policy = make_policy(cfg)
+
+    def step(carry, i):
+        return policy.apply(params, carry, Obs(obs[i], vel[i], stacks[i], i), jax.random.PRNGKey(0))
+
+    _, actions = jax.lax.scan(step, policy.init(params, jax.random.PRNGKey(0)), jnp.arange(t))
+    seq_in = stacks if kind == "framestack" else observation_vector(obs, vel, obs_size)[:, None]
+    want = denormalize_actions(params.norm, predict_sequence(cfg, params, seq_in))
+    np.testing.assert_allclose(actions, want, rtol=1e-5, atol=1e-5)
+    if kind == "framestack":
+        with pytest.raises(ValueError, match="obs.frames has shape \\(8, 13\\), expected \\(3, 13\\)"):
+            policy.apply(params, (), Obs(obs[0], vel[0], jnp.zeros((8, 13)), 0), jax.random.PRNGKey(0))
+
+
+def test_action_noise_is_held_per_episode():
+    cfg = PolicyConfig("lstm", hidden=8, layers=1)
+    params = member(init_ensemble(jax.random.PRNGKey(0), cfg, random_norm(jax.random.PRNGKey(1), 13), 1), 0)
+    base, noisy = make_policy(cfg), with_action_noise(make_policy(cfg), 0.5)
+    obs = jax.random.normal(jax.random.PRNGKey(2), (6, 13))
+
+    def episode(policy, key):
+        def step(carry, i):
+            o = Obs(obs[i], jnp.zeros(3), jnp.zeros((8, 13)), i)
+            return policy.apply(params, carry, o, jax.random.fold_in(key, i))
+        return jax.lax.scan(step, policy.init(params, key), jnp.arange(6))[1]   # [6, 8]
+
+    keys = jax.random.split(jax.random.PRNGKey(3), 4)
+    clean = episode(base, keys[0])
+    diff = jax.vmap(lambda k: episode(noisy, k))(keys) - clean               # [4 episodes, 6, 8]
+    np.testing.assert_allclose(diff, np.broadcast_to(diff[:, :1], diff.shape), atol=1e-5)  # same z every step
+    z = np.asarray(diff[:, 0])
+    assert len({tuple(np.round(r, 5)) for r in z}) == 4                        # differs across episodes
+    assert (np.abs(z) <= 0.5 * np.asarray(params.norm.act_std) + 1e-5).all() and np.abs(z).max() > 0
+
+
+def test_ensemble_policies_vmap_over_members():
+    cfg = PolicyConfig("framestack", hidden=8, layers=1, frame_stack=2)
+    params = init_ensemble(jax.random.PRNGKey(0), cfg, identity_normalizer(13), 3)
+    policy = with_action_noise(make_policy(cfg), 0.1)
+    keys = jax.random.split(jax.random.PRNGKey(1), 3)
+    carry = jax.vmap(policy.init)(params, keys)
+    o = Obs(jnp.zeros(13), jnp.zeros(3), jnp.ones((2, 13)), 0)
+    _, a = jax.vmap(policy.apply, in_axes=(0, 0, None, 0))(params, carry, o, keys)
+    assert a.shape == (3, 8) and not np.allclose(a[0], a[1])

@@ -1,0 +1,68 @@
+"""Optimizer updates of a whole ensemble in one jit-compiled, vmapped step.
+
+Every member samples its own windows from the one shared cache (its own key) and takes its
+own Adam step; no Python loop over members.
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from models.config import PolicyConfig
+from models.normalizer import Normalizer
+from models.policy import PolicyParams, ensemble_size, init_ensemble
+from training.cache import Cache
+from training.config import TrainConfig
+from training.loss import policy_loss
+from training.sampler import sample_subsequences
+
+
+class TrainState(NamedTuple):
+    params: PolicyParams    # leaves [N, ...]
+    opt_state: Any          # optax state of params.net, leaves [N, ...]
+    step: jnp.ndarray       # [] int32 updates taken
+
+
+def optimizer(tcfg: TrainConfig) -> optax.GradientTransformation:
+    """Global-norm clipping then Adam."""
+    return optax.chain(optax.clip_by_global_norm(tcfg.grad_clip), optax.adam(tcfg.learning_rate))
+
+
+def init_train_state(key, pcfg: PolicyConfig, tcfg: TrainConfig, norm: Normalizer) -> TrainState:
+    """`tcfg.members` freshly initialized members sharing the normalizer."""
+    params = init_ensemble(key, pcfg, norm, tcfg.members)
+    return TrainState(params, jax.vmap(optimizer(tcfg).init)(params.net), jnp.int32(0))
+
+
+def member_update(pcfg: PolicyConfig, tcfg: TrainConfig, params: PolicyParams, opt_state, cache: Cache, key):
+    """One member: sample a batch, one optimizer step -> (params, opt_state, loss [])."""
+    batch = sample_subsequences(key, cache, tcfg.window, tcfg.batch_size,
+                                pcfg.input_frames, pcfg.obs_size)
+    loss, grads = jax.value_and_grad(
+        lambda net: policy_loss(pcfg, params._replace(net=net), batch))(params.net)
+    updates, opt_state = optimizer(tcfg).update(grads, opt_state, params.net)
+    return params._replace(net=optax.apply_updates(params.net, updates)), opt_state, loss
+
+
+def _ensemble_update(pcfg, tcfg, state: TrainState, cache: Cache, key):
+    keys = jax.random.split(key, ensemble_size(state.params))
+    update = jax.vmap(lambda p, o, k: member_update(pcfg, tcfg, p, o, cache, k))
+    params, opt_state, loss = update(state.params, state.opt_state, keys)
+    return TrainState(params, opt_state, state.step + 1), loss
+
+
+def make_train_step(pcfg: PolicyConfig, tcfg: TrainConfig):
+    """jit-compiled `train_step(state, cache, key) -> (state, loss [N])`: one update per member."""
+    return jax.jit(lambda state, cache, key: _ensemble_update(pcfg, tcfg, state, cache, key))
+
+
+def make_train_loop(pcfg: PolicyConfig, tcfg: TrainConfig, num_steps: int):
+    """jit-compiled `train_loop(state, cache, key) -> (state, loss [num_steps, N])`: `num_steps`
+    updates in one call (a scan), for the updates between two practice rounds."""
+    def loop(state, cache, key):
+        body = lambda s, k: _ensemble_update(pcfg, tcfg, s, cache, k)  # noqa: E731
+        return jax.lax.scan(body, state, jax.random.split(key, num_steps))
+    return jax.jit(loop)
