@@ -92,8 +92,10 @@ class EpisodeLog:
         }
 
     def trajectories(self) -> Trajectories:
-        """The B = 1 record. Outcome fields the runner cannot see (hit, landing, net...) are
-        False / -1 / NaN; launch_pos/launch_vel are the first ball sample and velocity used."""
+        """The B = 1 record. ball_vel is the slope between the two ball samples used (an
+        estimate: the robot observes no velocity). Outcome fields the runner cannot see (hit,
+        landing, net...) are False / -1 / NaN; launch_pos/launch_vel are the first tick's ball
+        position and velocity estimate; launch_spin and aim are NaN."""
         nan2, nan3 = np.full((1, 2), np.nan, np.float32), np.full((1, 3), np.nan, np.float32)
         first = int(np.argmax(self.valid)) if self.valid.any() else 0
         f = np.zeros(1, bool)

@@ -252,3 +252,54 @@ def flight_positions(physics, pos, vel, spin_world, quat, n_control: int) -> np.
     and orientation quat [B, 4], the robot held at home."""
     qpos, qvel = _place_ball(physics.cfg, pos, vel, spin_world, quat)
     return ball_trajectories(physics, qpos, qvel, n_control)[0][..., :3]
+
+
+def table_throws(cfg: World, seed: int, n: int):
+    """n robot-free throws of the project's thrower (cfg.throws), which solves each launch so
+    that the ball clears the net and first bounces on the robot's half: pos, vel, spin_world
+    [n, 3] and quat [n, 4] for flight_positions."""
+    from ttmjx import thrower
+    th = thrower.sample_throws(jax.random.PRNGKey(seed), cfg, n)
+    pos, vel, spin = (np.asarray(x, np.float64) for x in (th.launch_pos, th.launch_vel, th.launch_spin))
+    return pos, vel, spin, np.tile([1.0, 0, 0, 0], (n, 1))
+
+
+def first_bounce(cfg: World, ball) -> dict:
+    """First table contact of free throws, from ball [B, T, 6]: numpy arrays [B] of the measured
+    normal COR (as impact_outcome) and the contact point x, y (NaN where none)."""
+    cor = impact_outcome(cfg, "table", ball, np.zeros(ball.shape[:-1] + (3,)))["cor"]
+    gap = ball[..., 2] - cfg.table.top_z - cfg.ball.radius
+    first = np.argmax(gap < 0, axis=1)
+    xy = ball[np.arange(len(ball)), first, :2]
+    xy[~(gap < 0).any(1)] = np.nan
+    return {"cor": cor, "x": xy[:, 0], "y": xy[:, 1]}
+
+
+def net_throws(cfg: World, seed: int, n: int, max_speed: float = 20.0):
+    """n balls flying into the net from either side: qpos [n, nq], qvel [n, nv], side [n]
+    (+1: from the thrower's side x > 0, -1: from the robot's side).
+
+    Each aims at a point of the net face below the tape (centre 3 cm above the table to 4 cm
+    under the tape, |y| <= 0.8 m) at 2..max_speed m/s, up to 60 deg off the net's normal, with
+    random spin, and starts (LEAD_STEPS + a random phase) steps of flight before reaching it.
+    """
+    rng = np.random.default_rng(seed)
+    t = cfg.table
+    side = np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
+    z = rng.uniform(t.top_z + 0.03, t.top_z + t.net_height - 0.04, n)
+    hit = np.stack([side * (t.net_thickness / 2 + cfg.ball.radius), rng.uniform(-0.8, 0.8, n), z], 1)
+    off = np.deg2rad(rng.uniform(0.0, 60.0, n))
+    roll = rng.uniform(0.0, 2 * np.pi, n)
+    direction = np.stack([-side * np.cos(off), np.sin(off) * np.cos(roll), np.sin(off) * np.sin(roll)], 1)
+    vel = direction * rng.uniform(2.0, max_speed, (n, 1))
+    pos = hit - vel * cfg.physics_dt * (LEAD_STEPS + rng.uniform(0.0, 1.0, (n, 1)))
+    spin = rng.uniform(-cfg.throws.max_spin, cfg.throws.max_spin, (n, 3))
+    qpos, qvel = _place_ball(cfg, pos, vel, spin)
+    return qpos, qvel, side
+
+
+def net_passes(ball, side) -> np.ndarray:
+    """[B] bool: the ball's centre reached the net's other side (x past 0) at some step, for
+    ball [B, T, 6] of net_throws with their side [B]."""
+    return (np.asarray(side)[:, None] * np.asarray(ball)[..., 0] < 0).any(1)
+

@@ -155,7 +155,7 @@ class Throws:
     # fixed-site thrower lands deeper on the robot's half the closer it stands to the net.
     varied_distance: tuple = (2.45, 2.85)
     # Launch solve (ttmjx/thrower.py).
-    candidates: int = 4                       # independent candidates per throw; first valid kept
+    candidates: int = 16                      # most candidates drawn per throw; first valid kept
     newton_iters: int = 5
     max_pitch: float = 0.6                    # rad: low arcs only (sets the slowest `any` speed)
     net_margin: float = 0.02                  # m: the ball's bottom clears the net tape by this

@@ -169,10 +169,16 @@ _IK_POSTURE = jnp.array([2e-3, 2e-3, 2e-4, 2e-4, 2e-4, 2e-4, 2e-4, 2e-4])
 _W_NORMAL, _W_ROLL = 0.4, 0.1    # m per unit direction error: the normal matters, the roll less
 
 
+# Room the IK leaves at each joint's limits for the back-swing and the follow-through (m, rad).
+_SWING_ROOM = (0.03, 0.1, 0.3, 0.3, 0.3, 0.4, 0.5, 0.5)
+
+
 def solve_ik(cfg: World, q, pos, normal, ext, q_pref, iters: int):
     """Damped Gauss-Newton: joints [8] putting the blade centre at pos [3] with link6's z axis
-    along normal [3] and its x axis near ext [3], preferring q_pref [8]; starts from q."""
-    lo, hi = _limits(cfg, 0.01)
+    along normal [3] and its x axis near ext [3], preferring q_pref [8]; starts from q. The
+    joints stay `_SWING_ROOM` inside their limits."""
+    lo, hi = _limits(cfg)
+    lo, hi = lo + jnp.array(_SWING_ROOM), hi - jnp.array(_SWING_ROOM)
 
     def residual(qq):
         p, rot = forward_kinematics(cfg, qq)
@@ -493,6 +499,7 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
         vlim = scfg.approach_speed_frac * vmax
         v_new = jnp.clip(v_new, -vlim, vlim)
         q_new = jnp.clip(q_new, q_ref - vlim * dt, q_ref + vlim * dt)
+        v_new = jnp.where(((q_new <= lo) & (v_new < 0)) | ((q_new >= hi) & (v_new > 0)), 0.0, v_new)
         q_new = jnp.clip(q_new, lo, hi)
 
         # -- the command: servo feed-forward, the per-episode joint offsets, limits
