@@ -33,11 +33,6 @@ class PolicyConfig:
             raise ValueError(f"PolicyConfig.hidden={self.hidden} and layers={self.layers} must be >= 1")
         if self.kind == "framestack" and self.frame_stack < 1:
             raise ValueError(f"PolicyConfig.frame_stack={self.frame_stack} must be >= 1")
-        # Frame stacks hold 13-value frames only: the paper stacks frames after removing the
-        # ball velocity, and env.Obs.frames carries no velocity history.
-        if self.kind == "framestack" and self.obs_size != 13:
-            raise ValueError(f"PolicyConfig(kind='framestack') needs obs_size=13 (stacked frames "
-                             f"carry no ball velocity), got obs_size={self.obs_size}")
 
     @property
     def input_frames(self) -> int:

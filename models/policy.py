@@ -28,16 +28,22 @@ class Policy(NamedTuple):
 
 
 def observation_vector(frame, ball_vel, obs_size: int):
-    """frame [..., 13] (joints, ball pos, goal), ball_vel [..., 3] -> [..., obs_size].
+    """frame [..., 13] (joints, ball pos, goal) or [..., 16] (joints, ball pos, ball vel, goal),
+    ball_vel [..., 3] -> [..., obs_size].
 
-    16 values insert the ball velocity after the ball position: joints, ball pos, ball vel, goal.
+    16 values insert ball_vel after the ball position; 13 from 16 drop the velocity columns.
     """
-    if frame.shape[-1] != 13:
-        raise ValueError(f"observation_vector: frame has shape {tuple(frame.shape)}, expected [..., 13]")
-    if obs_size == 13:
+    n = frame.shape[-1]
+    if n not in (13, 16):
+        raise ValueError(f"observation_vector: frame has shape {tuple(frame.shape)}, "
+                         f"expected [..., 13] or [..., 16]")
+    if n == obs_size:
         return frame
-    if ball_vel.shape[-1] != 3:
-        raise ValueError(f"observation_vector: ball_vel has shape {tuple(ball_vel.shape)}, expected [..., 3]")
+    if obs_size == 13:
+        return jnp.concatenate([frame[..., :11], frame[..., 14:]], axis=-1)
+    if ball_vel is None or ball_vel.shape[-1] != 3:
+        raise ValueError(f"observation_vector: ball_vel has shape {getattr(ball_vel, 'shape', None)}, "
+                         f"expected [..., 3] to build 16-value observations")
     return jnp.concatenate([frame[..., :11], ball_vel, frame[..., 11:]], axis=-1)
 
 
@@ -72,20 +78,21 @@ def predict_sequence(cfg: PolicyConfig, params: PolicyParams, frames):
 
 
 def _step_input(cfg: PolicyConfig, obs):
-    """env.Obs -> the network input [S, O] (raw)."""
+    """env.Obs -> the network input [S, O] (raw). Frames may be 13 or 16 wide (the env's
+    World.ball_velocity_obs); they are converted to cfg.obs_size."""
     if cfg.kind == "lstm":
         return observation_vector(obs.frame, obs.ball_vel, cfg.obs_size)[None]
-    if tuple(obs.frames.shape) != (cfg.frame_stack, 13):
+    if obs.frames.ndim != 2 or obs.frames.shape[0] != cfg.frame_stack:
         raise ValueError(f"policy: obs.frames has shape {tuple(obs.frames.shape)}, expected "
-                         f"({cfg.frame_stack}, 13) for PolicyConfig.frame_stack={cfg.frame_stack}")
-    return obs.frames
+                         f"({cfg.frame_stack}, 13 or 16) for PolicyConfig.frame_stack={cfg.frame_stack}")
+    return observation_vector(obs.frames, None, cfg.obs_size)
 
 
 def make_policy(cfg: PolicyConfig) -> Policy:
     """A deterministic Policy for one member and one throw (params without a leading axis).
 
-    Reads obs.frame [13] and obs.ball_vel [3] (lstm) or obs.frames [k, 13] (framestack); any
-    object with those attributes works. The key is unused.
+    Reads obs.frame [13 or 16] and obs.ball_vel [3] (lstm) or obs.frames [k, 13 or 16]
+    (framestack); any object with those attributes works. The key is unused.
     """
     def init(params, key):
         return zero_carry(cfg)

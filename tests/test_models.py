@@ -13,10 +13,10 @@ from models.normalizer import denormalize_actions
 from ttmjx.record import frame_stack
 
 
-class Obs(NamedTuple):   # the fields of ttmjx.env.Obs the policies read
-    frame: jnp.ndarray   # [13]
+class Obs(NamedTuple):     # the fields of ttmjx.env.Obs the policies read
+    frame: jnp.ndarray     # [13] or [16] (World.ball_velocity_obs)
     ball_vel: jnp.ndarray  # [3]
-    frames: jnp.ndarray  # [k, 13]
+    frames: jnp.ndarray    # [k, 13] or [k, 16]
     t: jnp.ndarray
 
 
@@ -31,16 +31,18 @@ def test_policy_config_rejects_bad_values():
         PolicyConfig("gru")
     with pytest.raises(ValueError, match="obs_size=14"):
         PolicyConfig(obs_size=14)
-    with pytest.raises(ValueError, match="needs obs_size=13"):
-        PolicyConfig("framestack", obs_size=16)
     assert PolicyConfig("lstm").input_frames == 1 and PolicyConfig("framestack").input_frames == 8
 
 
 def test_observation_vector_orders_joints_ball_velocity_goal():
     frame, vel = jnp.arange(13.0), 100 + jnp.arange(3.0)
     assert observation_vector(frame, vel, 13) is frame
-    np.testing.assert_array_equal(observation_vector(frame, vel, 16),
-                                  [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 100, 101, 102, 11, 12])
+    f16 = observation_vector(frame, vel, 16)
+    np.testing.assert_array_equal(f16, [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 100, 101, 102, 11, 12])
+    np.testing.assert_array_equal(observation_vector(f16, None, 13), frame)     # env 16 -> 13
+    assert observation_vector(f16, None, 16) is f16
+    with pytest.raises(ValueError, match="expected \\[..., 13\\] or \\[..., 16\\]"):
+        observation_vector(jnp.zeros(14), vel, 13)
 
 
 def test_normalizer_from_data_uses_valid_steps_and_floors_std():
@@ -72,27 +74,33 @@ def test_ensemble_shapes_and_members_differ(kind, obs_size):
         init_ensemble(jax.random.PRNGKey(0), cfg, identity_normalizer(3), 2)
 
 
-@pytest.mark.parametrize("kind,obs_size", [("lstm", 16), ("framestack", 13)])
-def test_rollout_adapter_matches_training_sequence(kind, obs_size):
-    """Stepping the Policy through an episode gives the actions the loss trains on."""
+@pytest.mark.parametrize("kind,obs_size,env_width", [("lstm", 16, 13), ("lstm", 16, 16), ("lstm", 13, 16),
+                                                     ("framestack", 13, 13), ("framestack", 16, 16),
+                                                     ("framestack", 13, 16)])
+def test_rollout_adapter_matches_training_sequence(kind, obs_size, env_width):
+    """Stepping the Policy through an episode gives the actions the loss trains on, whether the
+    env's frames are 13 or 16 wide (World.ball_velocity_obs)."""
     cfg = PolicyConfig(kind, hidden=16, layers=2, obs_size=obs_size, frame_stack=3)
     norm = random_norm(jax.random.PRNGKey(2), obs_size)
     params = member(init_ensemble(jax.random.PRNGKey(0), cfg, norm, 2), 1)
     t = 10
-    obs = jax.random.normal(jax.random.PRNGKey(1), (t, 13))
+    obs = jax.random.normal(jax.random.PRNGKey(1), (t, 13))               # as the record stores it
     vel = jax.random.normal(jax.random.PRNGKey(3), (t, 3))
-    stacks = frame_stack(obs[None], 3)[0]                                # [T, 3, 13]
+    env_frames = observation_vector(obs, vel, env_width)                     # as the env builds it
+    stacks = frame_stack(env_frames[None], 3)[0]                             # [T, 3, env_width]
     policy = make_policy(cfg)
 
     def step(carry, i):
-        return policy.apply(params, carry, Obs(obs[i], vel[i], stacks[i], i), jax.random.PRNGKey(0))
+        return policy.apply(params, carry, Obs(env_frames[i], vel[i], stacks[i], i), jax.random.PRNGKey(0))
 
     _, actions = jax.lax.scan(step, policy.init(params, jax.random.PRNGKey(0)), jnp.arange(t))
-    seq_in = stacks if kind == "framestack" else observation_vector(obs, vel, obs_size)[:, None]
-    want = denormalize_actions(params.norm, predict_sequence(cfg, params, seq_in))
+    # the training side: record columns (13) + ball_vel, stacked as the sampler does
+    seq = observation_vector(frame_stack(obs[None], cfg.input_frames)[0],
+                             frame_stack(vel[None], cfg.input_frames)[0], obs_size)
+    want = denormalize_actions(params.norm, predict_sequence(cfg, params, seq))
     np.testing.assert_allclose(actions, want, rtol=1e-5, atol=1e-5)
     if kind == "framestack":
-        with pytest.raises(ValueError, match="obs.frames has shape \\(8, 13\\), expected \\(3, 13\\)"):
+        with pytest.raises(ValueError, match="obs.frames has shape \\(8, 13\\), expected \\(3, 13 or 16\\)"):
             policy.apply(params, (), Obs(obs[0], vel[0], jnp.zeros((8, 13)), 0), jax.random.PRNGKey(0))
 
 

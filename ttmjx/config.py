@@ -153,7 +153,7 @@ class Throws:
     varied_yaw_deg: tuple = (-12.0, 12.0)
     # Horizontal distance from the launch point to the aim along the yawed line: a fixed-speed,
     # fixed-site thrower lands deeper on the robot's half the closer it stands to the net.
-    varied_distance: tuple = (2.45, 2.85)
+    varied_distance: tuple = (2.5, 2.85)
     # Launch solve (ttmjx/thrower.py).
     candidates: int = 16                      # most candidates drawn per throw; first valid kept
     newton_iters: int = 5

@@ -1,0 +1,99 @@
+"""The ES demonstration source (ttmjx/es.py): the optimiser, the weights file, the shipped policy."""
+import os
+import zipfile
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.flatten_util import ravel_pytree
+
+from ttmjx import backends, es, env
+from ttmjx.config import World
+from ttmjx.thrower import Throw
+
+CFG = World().with_throws("narrow")
+
+
+def _throws(n):
+    """n copies of a fixed narrow throw (from sample_throws; avoids the launch solve here)."""
+    rep = lambda *v: np.tile(np.array(v, np.float32), (n, 1))
+    return Throw(launch_pos=rep(1.75, 0.35, 0.95), launch_vel=rep(-7.00208, -1.7936301, 1.6626624),
+                 launch_spin=rep(0.0, 0.0, 0.0), aim=rep(-0.66546214, -0.26873672))
+
+
+def test_es_improves_fitness_on_a_tiny_problem():
+    target = jnp.linspace(-1.0, 1.0, 20)
+    fit = lambda thetas, gen: -jnp.sum((thetas - target) ** 2, axis=1)
+    x0 = jnp.zeros(20)
+    start = float(fit(x0[None], 0)[0])                      # -6.99
+    state, hist = es.openai_es(fit, x0, generations=15, population=16, seed=0,
+                               es=es.ESConfig(sigma=0.1, lr=0.05, weight_decay=0.0))
+    end = float(fit(state.mean[None], 0)[0])
+    assert len(hist) == 15 and hist[-1]["fitness_mean"] > hist[0]["fitness_mean"]
+    assert end > start + 0.5 * abs(start), (start, end)
+
+
+def test_ask_is_antithetic_and_ranks_are_centred():
+    state = es.es_init(jnp.arange(5.0))
+    thetas, eps = es.es_ask(state, jax.random.PRNGKey(0), 8, 0.1)
+    assert thetas.shape == (8, 5) and eps.shape == (4, 5)
+    np.testing.assert_allclose(thetas[:4] + thetas[4:], np.broadcast_to(2 * state.mean, (4, 5)), rtol=1e-6)
+    r = es.centered_ranks([3.0, -1.0, 10.0, 0.0])
+    np.testing.assert_allclose(r, [1 / 6, -0.5, 0.5, -1 / 6])
+    with pytest.raises(ValueError, match="even"):
+        es.es_ask(state, jax.random.PRNGKey(0), 7, 0.1)
+
+
+def test_population_policy_matches_the_single_policy():
+    params = es.init_params(CFG, jax.random.PRNGKey(0), hidden=8)
+    train, fixed = es.split_params(params)
+    x0, unravel = ravel_pytree(train)
+    thetas = x0[None] + 0.3 * jax.random.normal(jax.random.PRNGKey(1), (3, x0.shape[0]))
+    pop = es.population_policy(fixed, unravel)
+    single = es.mlp_policy()
+    frame = jnp.concatenate([jnp.array(CFG.robot.home), jnp.array([-1.2, -0.3, 0.95]), jnp.array([2.0, 0.0])])
+    obs = env.Obs(frame=frame, ball_vel=jnp.array([-4.0, -1.0, 1.0]), frames=frame[None], t=jnp.int32(3))
+    _, a_pop = pop.apply(thetas, None, obs, None)
+    _, a_one = single.apply({**fixed, **unravel(thetas[2])}, None, obs, None)
+    np.testing.assert_allclose(a_pop, a_one, rtol=1e-6)
+
+
+def test_weights_round_trip_is_exact_and_pickle_free(tmp_path):
+    params = jax.tree.map(np.asarray, es.init_params(CFG, jax.random.PRNGKey(3), hidden=16))
+    params["W2"] = np.asarray(jax.random.normal(jax.random.PRNGKey(4), (16, 8)), np.float32)
+    path = es.save_params(str(tmp_path / "w"), params, {"note": "test"})
+    assert path.endswith(".npz") and os.path.exists(str(tmp_path / "w.json"))
+    with np.load(path, allow_pickle=False) as z:                       # plain numeric arrays
+        assert all(z[k].dtype != object for k in z.files)
+    back = es.load_params(path)
+    for k in es.PARAM_NAMES:
+        assert back[k].dtype == np.float32 and back[k].tobytes() == np.asarray(params[k]).tobytes(), k
+    _, loaded = es.load_policy(CFG, str(tmp_path / "w.npz"))
+    assert all(np.array_equal(np.asarray(loaded[k]), params[k]) for k in es.PARAM_NAMES)
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(open(path, "rb").read()[:100])
+    with pytest.raises(ValueError, match="corrupt"):
+        es.load_params(str(bad))
+    with pytest.raises(ValueError, match="missing"):
+        es.load_params(str(tmp_path / "absent.npz"))
+
+
+def test_shipped_weights_load_without_pickle_and_run_on_c():
+    path = os.path.join(es.ASSETS, es.WEIGHTS_NAME)
+    assert zipfile.is_zipfile(path)
+    with np.load(path, allow_pickle=False) as z:
+        assert set(es.PARAM_NAMES) <= set(z.files)
+    policy, params = es.load_policy(CFG)
+    assert isinstance(policy, backends.Policy)
+    n = 4
+    be = backends.Backend(CFG, "c")
+    traj = be.rollout(policy, params, jax.random.PRNGKey(0), _throws(n), np.zeros((n, 2), np.float32))
+    assert traj.obs.shape == (n, CFG.horizon, 13)
+    assert np.all(np.isfinite(traj.actions[traj.valid]))
+    lo, hi = np.array(CFG.robot.lower), np.array(CFG.robot.upper)
+    assert np.all(traj.actions[traj.valid] >= lo - 1e-6) and np.all(traj.actions[traj.valid] <= hi + 1e-6)
+    # The policy moves the arm (it is not the hold policy) and the shaped reward is computable.
+    assert np.abs(traj.actions[:, 60] - traj.actions[:, 0]).max() > 0.01
+    r = es.shaped_reward(traj, es.Paddle(CFG))
+    assert r["reward"].shape == (n,) and np.all(np.isfinite(r["reward"]))
