@@ -169,32 +169,50 @@ class Backend:
         return self._advance(states, target, *out)
 
     # -- rollouts ------------------------------------------------------------------------
-    def rollout(self, policy: Policy, params, key, throws, goals, horizon: int | None = None) -> Trajectories:
+    def rollout(self, policy: Policy, params, key, throws, goals, horizon: int | None = None,
+                members: int | None = None) -> Trajectories:
         """Roll `policy` out on B throws toward goals [B, 2]; returns the trajectory record
-        with T = horizon (default cfg.horizon) steps."""
-        t_max = horizon or self.cfg.horizon
-        k_reset, k_init, k_act = jax.random.split(key, 3)
-        states = self.reset(k_reset, throws, goals)
-        if self.name == "mjx":
-            fn = self._mjx_rollout(policy, t_max)
-            return fn(params, states, k_init, k_act)
-        return self._c_rollout(policy, params, states, k_init, k_act, t_max)
+        with T = horizon (default cfg.horizon) steps.
 
-    def _policy_step(self, policy: Policy):
-        """jit(vmap) of: observe -> act -> clip, for a batch."""
+        members=N: params carry a leading ensemble axis [N, ...]; throw b is played by member
+        b // (B / N) (B must be a multiple of N)."""
+        b = np.shape(throws.launch_pos)[0]
+        goals = env.check_goals(goals, b)
+        if members and b % members:
+            raise ValueError(f"{b} throws cannot be split evenly over {members} ensemble members")
+        t_max = horizon or self.cfg.horizon
+        if self.name == "mjx":
+            key_ = ("mjx", policy, t_max, members)
+            if key_ not in self._rollouts:
+                self._rollouts[key_] = jax.jit(self.rollout_fn(policy, t_max, members))
+            return self._rollouts[key_](params, key, throws, jnp.asarray(goals))
+        return self._c_rollout(policy, params, key, throws, goals, t_max, members)
+
+    def _reset_keys(self, key, throws, goals):
+        k_reset, k_init, k_act = jax.random.split(key, 3)
+        keys = jax.random.split(k_reset, goals.shape[0])
+        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+        states = self._reset(keys, f32(throws.launch_pos), f32(throws.launch_vel), f32(throws.launch_spin),
+                             f32(throws.aim), f32(goals))
+        return states, k_init, k_act
+
+    def _act_fn(self, policy: Policy, members):
+        """observe -> act -> clip for a batch: (params, carry, states, key) -> (carry, obs, target)."""
+        _, apply_b = batched_policy(policy, members)
+
         def act(params, carry, states, key):
             obs = self._observe(states)
-            keys = jax.random.split(key, states.t.shape[0])
-            carry, action = jax.vmap(policy.apply, in_axes=(None, 0, 0, 0))(params, carry, obs, keys)
+            carry, action = apply_b(params, carry, obs, jax.random.split(key, states.t.shape[0]))
             return carry, obs, self._command(states, action)
         return act
 
-    def _c_rollout(self, policy, params, states, k_init, k_act, t_max):
-        key = ("c", policy, t_max)
-        if key not in self._rollouts:
-            init = jax.jit(jax.vmap(policy.init, in_axes=(None, 0)))
-            self._rollouts[key] = (init, jax.jit(self._policy_step(policy)))
-        init, act = self._rollouts[key]
+    def _c_rollout(self, policy, params, key, throws, goals, t_max, members):
+        ck = ("c", policy, members)
+        if ck not in self._rollouts:
+            init_b, _ = batched_policy(policy, members)
+            self._rollouts[ck] = (jax.jit(init_b), jax.jit(self._act_fn(policy, members)))
+        init, act = self._rollouts[ck]
+        states, k_init, k_act = self._reset_keys(key, throws, goals)
         b = states.t.shape[0]
         carry = init(params, jax.random.split(k_init, b))
         frames, vels, actions, valids = [], [], [], []
@@ -208,36 +226,60 @@ class Backend:
             if not valid.any():
                 break
         pad = t_max - len(frames)
-        stack = lambda xs: np.concatenate([np.stack([np.asarray(x) for x in xs], 1),
+        stack = lambda xs: np.concatenate([np.stack([np.asarray(x) for x in xs], 1),  # noqa: E731
                                            np.repeat(np.asarray(xs[-1])[:, None], pad, 1)], 1)
         valid_arr = np.concatenate([np.stack(valids, 1), np.zeros((b, pad), bool)], 1)
         return jax.tree.map(np.asarray, _record(self.cfg, self.lay, states, stack(frames), stack(vels),
                                                 stack(actions), valid_arr))
 
-    def _mjx_rollout(self, policy, t_max):
-        key = ("mjx", policy, t_max)
-        if key in self._rollouts:
-            return self._rollouts[key]
-        act = self._policy_step(policy)
+    def rollout_fn(self, policy: Policy, t_max: int | None = None, members: int | None = None):
+        """MJX only: a pure, jittable `(params, key, throws, goals [B, 2]) -> Trajectories`
+        (no input validation: for use inside larger jit-compiled functions)."""
+        if self.name != "mjx":
+            raise ValueError("rollout_fn needs the mjx backend; the C backend steps on the host")
+        t_max = t_max or self.cfg.horizon
+        init_b, _ = batched_policy(policy, members)
+        act = self._act_fn(policy, members)
         phys = jax.vmap(self.physics.step)
+        advance = jax.vmap(functools.partial(env.advance, self.cfg, self.lay))
 
-        def run(params, states, k_init, k_act):
-            carry = jax.vmap(policy.init, in_axes=(None, 0))(params, jax.random.split(k_init, states.t.shape[0]))
+        def run(params, key, throws, goals):
+            states, k_init, k_act = self._reset_keys(key, throws, goals)
+            carry = init_b(params, jax.random.split(k_init, states.t.shape[0]))
 
             def body(c, t):
                 carry, states = c
                 valid = ~states.events.done
                 carry, obs, target = act(params, carry, states, jax.random.fold_in(k_act, t))
-                states = jax.vmap(functools.partial(env.advance, self.cfg, self.lay))(
-                    states, target, *phys(states.qpos, states.qvel, states.target, target))
+                states = advance(states, target, *phys(states.qpos, states.qvel, states.target, target))
                 return (carry, states), (obs.frame, obs.ball_vel, target, valid)
 
             (carry, states), (f, v, a, val) = jax.lax.scan(body, (carry, states), jnp.arange(t_max))
-            sw = lambda x: jnp.swapaxes(x, 0, 1)
+            sw = lambda x: jnp.swapaxes(x, 0, 1)  # noqa: E731
             return _record(self.cfg, self.lay, states, sw(f), sw(v), sw(a), sw(val))
+        return run
 
-        self._rollouts[key] = jax.jit(run)
-        return self._rollouts[key]
+
+def batched_policy(policy: Policy, members: int | None = None):
+    """(init_b, apply_b) of a one-throw policy over a flat batch of B throws.
+
+    Without members the params are shared. With members=N the params have a leading [N] axis
+    and the batch is played in N contiguous blocks, one per member (vmap over members of a vmap
+    over throws: no per-throw copies of the parameters)."""
+    init1 = jax.vmap(policy.init, in_axes=(None, 0))
+    apply1 = jax.vmap(policy.apply, in_axes=(None, 0, 0, 0))
+    if not members:
+        return init1, apply1
+    split = lambda x: x.reshape((members, -1) + x.shape[1:])  # noqa: E731
+    merge = lambda x: x.reshape((-1,) + x.shape[2:])  # noqa: E731
+
+    def init_b(params, keys):
+        return jax.tree.map(merge, jax.vmap(init1)(params, split(keys)))
+
+    def apply_b(params, carry, obs, keys):
+        carry, action = jax.vmap(apply1)(params, jax.tree.map(split, carry), jax.tree.map(split, obs), split(keys))
+        return jax.tree.map(merge, carry), merge(action)
+    return init_b, apply_b
 
 
 def hold_policy() -> Policy:

@@ -114,7 +114,8 @@ def _extensions():
             if e.name and mod.startswith(e.name.split(".")[0]) and e.name in (mod, mod.rsplit(".", 1)[0]):
                 continue
             raise
-        regs.append(m.register)
+        if hasattr(m, "register"):
+            regs.append(m.register)
     return regs
 
 

@@ -125,11 +125,16 @@ class Robot:
 
 @dataclasses.dataclass(frozen=True)
 class Throws:
-    """The three throw distributions of the paper; `name` picks one.
+    """The three throw distributions of the paper; `name` picks one (ttmjx/thrower.py).
 
     narrow: one launch position, narrow speed range, forehand landing region.
     any:    wide launch positions and velocities (~5-9 m/s), landing anywhere on the robot's half.
     varied: three launch x positions cycled, yaw swept, fixed speed.
+
+    Positions in the world frame (robot at x < 0, thrower behind x = +1.37), aims (x, y) on the
+    robot's half, speeds in m/s. Launches are solved with drag (and Magnus with spin) so the first
+    bounce lands on the aim; a candidate that cannot (no low arc at an allowed speed clears the
+    net) is redrawn, so each distribution is its ranges conditioned on feasible throws.
     """
     name: str = "narrow"
     spin: bool = False

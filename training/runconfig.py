@@ -1,0 +1,157 @@
+"""The whole configuration of a training run, and its presets.
+
+LFP is this trainer with practice off; GCSL is practice from zero demonstrations: both are
+presets (configurations), not copies of the code.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+from models.config import PolicyConfig
+from training.config import TrainConfig
+from ttmjx.config import World
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """A GoalsEye run (Algorithm 1) from demonstrations to evaluation."""
+    preset: str = "default"
+    world: World = World()
+    policy: PolicyConfig = PolicyConfig()
+    train: TrainConfig = TrainConfig()
+    demos: int = 1000
+    """Bootstrap demonstrations (0 = GCSL)."""
+    demo_source: Literal["scripted", "es"] = "scripted"
+    demo_dir: str | None = None
+    """Use this dataset (ttmjx demos --out) instead of collecting demonstrations."""
+    data: tuple[str, ...] = ()
+    """Robot log directories (ttmjx robot run --out) relabeled and added to the cache."""
+    practice: bool = True
+    """Self-supervised practice; off = LFP (GCBC on the demonstrations alone)."""
+    pretrain_steps: int = 2000
+    """GCBC steps on the demonstrations before practice starts; evaluated as the LFP point."""
+    steps_between_ssp: int = 200
+    """S: training steps per practice round."""
+    episodes_per_ssp: int = 200
+    """M: practice episodes per round (all members together)."""
+    total_trajectories: int = 6000
+    """Demonstrations + practice episodes at the end of the run."""
+    eval_every: int = 1000
+    """Evaluate every this many practice trajectories (and at the LFP point and the end)."""
+    eval_goals: int = 200
+    seed: int = 0
+    backend: Literal["auto", "c", "mjx"] = "auto"
+    """auto: MJX on an accelerator, MuJoCo C on a CPU."""
+    run_dir: str = "runs/default"
+    keep_checkpoints: int = 3
+
+    def __post_init__(self):
+        for name in ("steps_between_ssp", "episodes_per_ssp", "eval_every", "eval_goals", "keep_checkpoints"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"RunConfig.{name}={getattr(self, name)}, expected >= 1")
+        for name in ("demos", "pretrain_steps", "total_trajectories"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"RunConfig.{name}={getattr(self, name)}, expected >= 0")
+        if self.demos == 0 and not self.practice:
+            raise ValueError("demos=0 with practice off has nothing to learn from")
+        if self.world.frame_stack != self.policy.frame_stack and self.policy.kind == "framestack":
+            raise ValueError(f"policy.frame_stack={self.policy.frame_stack} differs from "
+                             f"world.frame_stack={self.world.frame_stack}")
+        if self.policy.obs_size != self.world.obs_size:
+            raise ValueError(f"policy.obs_size={self.policy.obs_size} but the world observes "
+                             f"{self.world.obs_size} values (world.ball_velocity_obs={self.world.ball_velocity_obs})")
+
+
+def on_accelerator() -> bool:
+    import jax
+    return jax.default_backend() in ("gpu", "cuda", "rocm", "tpu")
+
+
+def resolve_backend(name: str) -> str:
+    if name == "auto":
+        return "mjx" if on_accelerator() else "c"
+    return name
+
+
+def _cpu_default() -> RunConfig:
+    """Sized so the whole main job (demonstrations included) ends within ~20 min on 2 CPU cores."""
+    return RunConfig(
+        preset="default",
+        world=World().with_throws("narrow"),
+        policy=PolicyConfig(kind="framestack", hidden=256, layers=2, obs_size=13, frame_stack=8),
+        train=TrainConfig(window=96, batch_size=32, learning_rate=1e-3, members=2, capacity=16384,
+                          action_noise=0.2),
+        demos=1000, pretrain_steps=2000, steps_between_ssp=200, episodes_per_ssp=200,
+        total_trajectories=7000, eval_every=1000, run_dir="runs/default")
+
+
+def _gpu_default() -> RunConfig:
+    return dataclasses.replace(paper_sim_new(), preset="default", total_trajectories=40_000, run_dir="runs/default")
+
+
+def paper_sim() -> RunConfig:
+    """The paper's simulated any-ball setting: LSTM 2x1024 over 16-value observations (ball
+    velocity included), 100 Hz, windows of 96, 3.6k demonstrations, 120k total trajectories."""
+    return RunConfig(
+        preset="paper-sim",
+        world=World(ball_velocity_obs=True).with_throws("any"),
+        policy=PolicyConfig(kind="lstm", hidden=1024, layers=2, obs_size=16),
+        train=TrainConfig(window=96, batch_size=64, learning_rate=1e-4, members=1, capacity=131_072),
+        demos=3600, pretrain_steps=5000, steps_between_ssp=100, episodes_per_ssp=1000,
+        total_trajectories=120_000, eval_every=10_000, run_dir="runs/paper-sim")
+
+
+def paper_sim_new() -> RunConfig:
+    """"New Results": frame-stacked [8, 13] observations, action noise during practice and a
+    10-member ensemble sharing one pool; 100k trajectories."""
+    return RunConfig(
+        preset="paper-sim-new",
+        world=World().with_throws("any"),
+        policy=PolicyConfig(kind="framestack", hidden=1024, layers=2, obs_size=13, frame_stack=8),
+        train=TrainConfig(window=96, batch_size=64, learning_rate=3e-4, members=10, capacity=131_072,
+                          action_noise=0.2),
+        demos=3600, pretrain_steps=5000, steps_between_ssp=100, episodes_per_ssp=1000,
+        total_trajectories=100_000, eval_every=10_000, run_dir="runs/paper-sim-new")
+
+
+def tiny() -> RunConfig:
+    """Seconds-long runs for tests."""
+    return RunConfig(
+        preset="tiny", world=World().with_throws("narrow"),
+        policy=PolicyConfig(kind="framestack", hidden=64, layers=2, obs_size=13, frame_stack=8),
+        train=TrainConfig(window=32, batch_size=16, learning_rate=1e-3, members=2, capacity=2048, action_noise=0.2),
+        demos=200, pretrain_steps=40, steps_between_ssp=20, episodes_per_ssp=32,
+        total_trajectories=328, eval_every=64, eval_goals=32, run_dir="runs/tiny")
+
+
+def preset(name: str) -> RunConfig:
+    """A named preset; `default` picks the available device."""
+    if name == "default":
+        from training.runconfig import on_accelerator
+        return _gpu_default() if on_accelerator() else _cpu_default()
+    if name == "lfp":
+        base = _cpu_default()
+        return dataclasses.replace(base, preset="lfp", practice=False, run_dir="runs/lfp")
+    if name == "gcsl":
+        base = _cpu_default()
+        return dataclasses.replace(base, preset="gcsl", demos=0, pretrain_steps=0, run_dir="runs/gcsl")
+    if name in PRESETS:
+        return PRESETS[name]()
+    raise ValueError(f"unknown preset {name!r}; expected one of {PRESET_NAMES}")
+
+
+PRESETS = {"paper-sim": paper_sim, "paper-sim-new": paper_sim_new, "tiny": tiny, "cpu": _cpu_default,
+           "gpu": _gpu_default}
+PRESET_NAMES = ("default", "lfp", "gcsl", *PRESETS)
+
+
+def from_json(d: dict) -> RunConfig:
+    """Inverse of dataclasses.asdict for a RunConfig saved as JSON (config.json, checkpoints)."""
+    from ttmjx.config import from_dict
+    d = dict(d)
+    d["world"] = from_dict(World, d["world"])
+    d["policy"] = PolicyConfig(**d["policy"])
+    d["train"] = TrainConfig(**d["train"])
+    d["data"] = tuple(d.get("data", ()))
+    return RunConfig(**d)
