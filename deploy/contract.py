@@ -1,8 +1,9 @@
 """The runtime contract between an exported policy and the robot runner.
 
 Everything the runner must agree on with the policy and the robot: the control rate, the frame
-stack, the observation size and the joint limits. The export step (later) writes it as JSON
-beside the weights; `contract_from_world` builds it from the simulation config.
+stack, the observation size and the joint limits. deploy/export.py writes it (the `runtime`
+section of an export's contract.json, beside the robot id, layouts and hashes);
+`contract_from_world` builds it from the simulation config.
 """
 from __future__ import annotations
 
@@ -14,6 +15,9 @@ from ttmjx.config import JOINT_NAMES, Robot, World
 
 # The real robot has no ball velocity (paper, Policy architecture): 13-value frames only.
 REAL_OBS_SIZE = 13
+# The robot an export is made for (deploy/export.py checks it at load): ABB IRB 120T on a
+# two-axis gantry, joints JOINT_NAMES. Another robot (or a changed joint order) gets a new id.
+ROBOT_MODEL_ID = "abb-irb120t-on-2axis-gantry/v1"
 _ROBOT = Robot()
 
 

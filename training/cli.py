@@ -33,6 +33,5 @@ def register(sub, common):
     sp.add_argument("--json", action="store_true", help="print one JSON object as the last line")
     sp.add_argument("--max-iterations", type=int, default=None,
                     help="stop (with a checkpoint) after this many iterations; resume later")
-    sp.add_argument("rest", nargs=argparse.REMAINDER,
-                    help="RunConfig overrides, e.g. --seed 1 --train.members 4 (see --preset P -- --help)")
-    sp.set_defaults(fn=cmd_train)
+    # Every other option is a RunConfig override for tyro, e.g. --seed 1 --train.members 4.
+    sp.set_defaults(fn=cmd_train, rest=[])

@@ -120,7 +120,12 @@ def _extensions():
 
 
 def main(argv=None):
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, unknown = parser.parse_known_args(argv)
+    if hasattr(args, "rest"):  # typed config overrides for tyro (ttmjx train)
+        args.rest = [a for a in list(args.rest) + unknown if a != "--"]
+    elif unknown:
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
         args.fn(args)
     except (ValueError, FileExistsError, FileNotFoundError) as e:

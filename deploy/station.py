@@ -1,0 +1,537 @@
+"""The simulated station: the robot, the ball tracker and the clock of deploy/hardware.py on
+MuJoCo C physics, so the robot runner plays whole episodes exactly as against hardware.
+
+* Physics: `ttmjx.scene.model(cfg)` (MuJoCo's ellipsoid fluid model flies the ball) stepped at
+  cfg.physics_dt, lazily: every call into the station (a joint read, a command, a tracker read)
+  first advances the physics to `clock.now()`. The clock is injectable: `SimClock` (fake time
+  that jumps on sleep_until, so an episode runs much faster than real time; optionally charging
+  the runner's own computation time) or deploy.hardware.MonotonicClock (real time).
+* Robot: the 8 position actuators are driven toward the sent targets, each target ramped in
+  linearly over `ramp_s` (default: one control period, as the simulation ramps its targets over
+  a control step). Joint feedback is sampled every 1/joint_hz s and delivered
+  joint_latency_s late, timestamped on the clock's time base. Every command is logged (time,
+  target, true joints), as deploy.fakes.FakeRobot does, for deploy.safety.count_violations.
+* Ball: launched by `ttmjx.thrower.sample_throws` (throw_in); the tracker samples it every
+  1/tracker_hz s (125 Hz), timestamped, delivered tracker_latency_s late. Before a launch and
+  after `finish_throw` the ball is parked out of sight (the tracker reports nothing). The room
+  keeps a ball in view (a real lab is enclosed): it bounces off the floor and stops at barriers
+  (|x| = room_x, |y| = room_y), so a missed ball does not vanish from the tracker mid-episode.
+* Events (`ThrowEvents`), from the MuJoCo contacts of the ball, with the rules of ttmjx.env:
+  hit = first ball-paddle contact; bounce_own = a table contact on the robot's half before the
+  hit; net = any net contact; landing = the first table contact after the hit, or where a hit
+  ball falls through table height outside the table; on_opponent = that table contact has x > 0;
+  the throw is over when it landed or the ball fell below the table top.
+
+`play(runner, station, goals, out_dir)` runs episodes like Runner.run_episodes, but completes each
+logged episode with the station's events (hit, hit_step, landing, on_opponent, ..., the true
+launch) before saving it, so the logs relabel like simulation data (`ttmjx train --data`).
+`run_sim(policy_dir, goals, ...)` is `ttmjx robot run --station sim`.
+"""
+from __future__ import annotations
+
+import collections
+import contextlib
+import dataclasses
+import json
+import math
+import os
+import time
+
+import mujoco
+import numpy as np
+
+from deploy.contract import Contract
+from deploy.episode_log import Episode, save_episode
+from deploy.goals import check_goals
+from deploy.modes import Mode
+from deploy.runner import NoBallError, Runner, RunnerConfig
+from deploy.safety import count_violations
+from ttmjx import record, scene
+from ttmjx.config import World
+
+# Ball parked out of sight between throws (no contacts, the tracker reports nothing).
+PARK = np.array([0.0, 0.0, -5.0])
+
+
+class SimClock:
+    """Fake time on the runner's time base: sleep_until(t) jumps to t at once.
+
+    charge_compute=True: wall time spent between clock calls (the runner's own work: the policy,
+    the filter, logging) also passes, so latencies and overruns are as on hardware; time spent
+    inside `excluded()` (the station's physics) does not.
+    """
+
+    def __init__(self, start: float = 0.0, charge_compute: bool = False):
+        self.t, self.charge_compute = float(start), charge_compute
+        self._mark = time.perf_counter()
+        self.sleeps = 0
+
+    def _charge(self) -> None:
+        if self.charge_compute:
+            w = time.perf_counter()
+            self.t += w - self._mark
+            self._mark = w
+
+    def now(self) -> float:
+        self._charge()
+        return self.t
+
+    def sleep_until(self, t: float) -> None:
+        self._charge()
+        self.t = max(self.t, float(t))
+        self.sleeps += 1
+        self._mark = time.perf_counter()
+
+    def advance(self, dt: float) -> None:
+        if dt < 0:
+            raise ValueError(f"SimClock.advance({dt}): time cannot go back")
+        self._charge()
+        self.t += dt
+
+    @contextlib.contextmanager
+    def excluded(self):
+        """Wall time spent inside does not pass on this clock."""
+        self._charge()
+        try:
+            yield
+        finally:
+            self._mark = time.perf_counter()
+
+
+@dataclasses.dataclass
+class ThrowEvents:
+    """What happened to one throw (times on the clock's time base)."""
+    t_launch: float
+    launch_pos: np.ndarray
+    launch_vel: np.ndarray
+    launch_spin: np.ndarray
+    aim: np.ndarray
+    hit: bool = False
+    t_hit: float = math.nan
+    bounce_own: bool = False
+    net: bool = False
+    landed: bool = False
+    landing: np.ndarray = dataclasses.field(default_factory=lambda: np.full(2, np.nan))
+    t_land: float = math.nan
+    on_opponent: bool = False
+    fell: bool = False
+    done: bool = False
+    t_done: float = math.nan
+
+    def to_dict(self) -> dict:
+        out = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, np.ndarray):
+                v = [None if not np.isfinite(x) else float(x) for x in v]
+            elif isinstance(v, float):
+                v = None if not math.isfinite(v) else v
+            out[f.name] = v
+        return out
+
+
+class SimRobot:
+    """deploy.hardware.Robot of a SimStation."""
+
+    def __init__(self, station: "SimStation"):
+        self.s = station
+        self.sent_t: list[float] = []
+        self.sent_q: list[np.ndarray] = []
+        self.true_at_send: list[np.ndarray] = []
+
+    def read(self) -> tuple[float, np.ndarray]:
+        s = self.s
+        now = s.sync()
+        for t, q in reversed(s.joint_samples):
+            if t <= now - s.joint_latency_s + 1e-12:
+                return t, q.copy()
+        t, q = s.joint_samples[0]
+        return t, q.copy()
+
+    def send(self, q) -> None:
+        q = np.asarray(q, np.float64)
+        if q.shape != (8,) or not np.all(np.isfinite(q)):
+            raise ValueError(f"SimRobot.send: expected 8 finite targets, got {q!r}")
+        s = self.s
+        now = s.sync()
+        s.set_target(q, now)
+        self.sent_t.append(now)
+        self.sent_q.append(q.copy())
+        self.true_at_send.append(s.joints().copy())
+
+    def command_log(self) -> tuple[np.ndarray, np.ndarray]:
+        """(times [N], targets [N, 8]) of every command sent."""
+        return np.asarray(self.sent_t), np.asarray(self.sent_q).reshape(-1, 8)
+
+
+class SimTracker:
+    """deploy.hardware.BallTracker of a SimStation: samples since the previous read."""
+
+    def __init__(self, station: "SimStation"):
+        self.s = station
+        self._last = -math.inf
+
+    def read(self) -> tuple[np.ndarray, np.ndarray]:
+        s = self.s
+        now = s.sync()
+        ts, xs = [], []
+        for t, x in s.ball_samples:
+            if self._last < t <= now - s.tracker_latency_s + 1e-12:
+                ts.append(t)
+                xs.append(x)
+        if ts:
+            self._last = ts[-1]
+        return np.asarray(ts, np.float64), np.asarray(xs, np.float64).reshape(-1, 3)
+
+
+class SimStation:
+    """Robot, tracker and clock on MuJoCo C physics (module docstring)."""
+
+    def __init__(self, cfg: World = World(), contract: Contract | None = None, clock=None,
+                 seed: int = 0, joint_hz: float = 250.0, joint_latency_s: float = 0.002,
+                 tracker_hz: float = 125.0, tracker_latency_s: float = 0.004,
+                 tracker_noise_m: float = 0.0, ramp_s: float | None = None, q0=None,
+                 throws_per_batch: int = 16, room_x: float = 3.5, room_y: float = 2.5):
+        self.cfg = cfg
+        self.clock = clock if clock is not None else SimClock()
+        self.m = scene.model(cfg, fluid=True)
+        self.d = mujoco.MjData(self.m)
+        self.ids = scene.ids(self.m)
+        self.table_geom = int(self.m.geom("table").id)
+        self.net_geom = int(self.m.geom("net").id)
+        self.ball_geom = int(self.m.geom("ball").id)
+        self.dt = float(self.m.opt.timestep)
+        self.joint_every = self._steps_per(joint_hz, "joint_hz")
+        self.ball_every = self._steps_per(tracker_hz, "tracker_hz")
+        self.joint_latency_s, self.tracker_latency_s = joint_latency_s, tracker_latency_s
+        self.noise_m, self.rng = tracker_noise_m, np.random.default_rng(seed)
+        self.ramp_s = float(ramp_s if ramp_s is not None else (contract.dt if contract else cfg.control_dt))
+        self.room = (room_x, room_y)
+        self.seed, self.throws_per_batch = seed, throws_per_batch
+        self._throws, self._throw_i, self._batch = None, 0, 0
+
+        r = cfg.robot
+        if q0 is None:
+            noise = self.rng.uniform(-1.0, 1.0, 8) * np.asarray(r.home_noise)
+            q0 = np.clip(np.asarray(r.home) + noise, r.lower, r.upper)
+        q0 = np.asarray(q0, np.float64)
+        self.d.qpos[self.ids.robot_qpos] = q0
+        self.d.ctrl[:] = q0
+        self._ramp = (q0.copy(), q0.copy(), -math.inf)   # (from, to, start time)
+        self._park()
+        mujoco.mj_forward(self.m, self.d)
+
+        self.t_origin = float(self.clock.now())
+        self.n = 0                                        # physics steps taken
+        self.joint_samples = collections.deque([(self.t_origin, q0.copy())], maxlen=256)
+        self.ball_samples = collections.deque(maxlen=512)
+        self.in_flight = False
+        self.pending: tuple | None = None                  # (t_launch, throw index)
+        self.events: ThrowEvents | None = None
+        self.throw_log: list[ThrowEvents] = []
+        self.physics_steps = 0
+        self.robot, self.tracker = SimRobot(self), SimTracker(self)
+
+    def _steps_per(self, hz: float, name: str) -> int:
+        k = 1.0 / (hz * self.cfg.physics_dt)
+        if hz <= 0 or abs(k - round(k)) > 1e-6:
+            raise ValueError(f"{name}={hz} is not a whole number of {self.cfg.physics_dt}s physics steps")
+        return int(round(k))
+
+    # ---------------------------------------------------------------------- state
+    @property
+    def time(self) -> float:
+        """Physics time on the clock's time base."""
+        return self.t_origin + self.n * self.dt
+
+    def joints(self) -> np.ndarray:
+        return self.d.qpos[self.ids.robot_qpos].copy()
+
+    def ball(self) -> np.ndarray:
+        """[6] ball position and velocity (world)."""
+        bq, bv = self.ids.ball_qpos, self.ids.ball_qvel
+        return np.concatenate([self.d.qpos[bq:bq + 3], self.d.qvel[bv:bv + 3]])
+
+    def set_target(self, q: np.ndarray, now: float) -> None:
+        self._ramp = (self._ctrl_at(now), np.clip(q, self.cfg.robot.lower, self.cfg.robot.upper), now)
+
+    def _ctrl_at(self, t: float) -> np.ndarray:
+        q_from, q_to, t0 = self._ramp
+        w = 1.0 if self.ramp_s <= 0 else float(np.clip((t - t0) / self.ramp_s, 0.0, 1.0))
+        return q_from + w * (q_to - q_from)
+
+    # ---------------------------------------------------------------------- throws
+    def _next_throw(self):
+        if self._throws is None or self._throw_i >= self.throws_per_batch:
+            import jax
+
+            from ttmjx.thrower import sample_throws
+            key = jax.random.fold_in(jax.random.key(self.seed), self._batch)
+            th = sample_throws(key, self.cfg, self.throws_per_batch)
+            self._throws = jax.tree.map(lambda x: np.asarray(x, np.float64), th)
+            self._throw_i, self._batch = 0, self._batch + 1
+        th, i = self._throws, self._throw_i
+        self._throw_i += 1
+        return th.launch_pos[i], th.launch_vel[i], th.launch_spin[i], th.aim[i]
+
+    def throw_in(self, delay_s: float = 0.3) -> None:
+        """Launch the next sampled throw delay_s from now (a throw in flight is removed)."""
+        now = self.sync()
+        if self.in_flight:
+            self._park()
+        self.pending = (now + float(delay_s), self._next_throw())
+
+    def _launch(self, t: float) -> None:
+        _, (pos, vel, spin, aim) = self.pending
+        self.pending = None
+        bq, bv = self.ids.ball_qpos, self.ids.ball_qvel
+        self.d.qpos[bq:bq + 7] = np.concatenate([pos, [1.0, 0.0, 0.0, 0.0]])
+        # Identity orientation at launch: the local angular velocity equals the world spin.
+        self.d.qvel[bv:bv + 6] = np.concatenate([vel, spin])
+        self.in_flight = True
+        self.events = ThrowEvents(t, pos.copy(), vel.copy(), spin.copy(), aim.copy())
+        self.throw_log.append(self.events)
+
+    def _park(self) -> None:
+        bq, bv = self.ids.ball_qpos, self.ids.ball_qvel
+        self.d.qpos[bq:bq + 7] = np.concatenate([PARK, [1.0, 0.0, 0.0, 0.0]])
+        self.d.qvel[bv:bv + 6] = 0.0
+        self.in_flight = False
+
+    def finish_throw(self, max_s: float = 3.0, poll_s: float = 0.02) -> ThrowEvents | None:
+        """Let time pass (the robot holding its target) until the throw is over (landed, or
+        fell below the table) or max_s; then park the ball. Returns the throw's events."""
+        ev = self.events
+        t_end = self.sync() + max_s
+        while self.pending is not None or (self.in_flight and ev is not None and not ev.done):
+            now = self.clock.now()
+            if now >= t_end:
+                break
+            self.clock.sleep_until(min(now + poll_s, t_end))
+            self.sync()
+            ev = self.events
+        self._park()
+        self.pending = None
+        return self.events
+
+    # ---------------------------------------------------------------------- physics
+    def sync(self) -> float:
+        """Advance the physics to the clock's now; returns now."""
+        now = float(self.clock.now())
+        target = int(math.floor((now - self.t_origin) / self.dt + 1e-9))
+        if target > self.n:
+            excluded = getattr(self.clock, "excluded", None)
+            with (excluded() if excluded is not None else contextlib.nullcontext()):
+                while self.n < target:
+                    self._step()
+        return now
+
+    def _step(self) -> None:
+        d, ids = self.d, self.ids
+        t = self.time
+        if self.pending is not None and t >= self.pending[0] - 1e-12:
+            self._launch(t)
+        d.ctrl[:] = self._ctrl_at(t + self.dt)       # the ramped target at the end of the step
+        bq = ids.ball_qpos
+        prev = d.qpos[bq:bq + 3].copy()
+        mujoco.mj_step(self.m, d)
+        self.n += 1
+        self.physics_steps += 1
+        t = self.time
+        if self.in_flight:
+            self._update_events(prev, t)
+            self._room()
+        else:
+            self._park()
+        if self.n % self.joint_every == 0:
+            self.joint_samples.append((t, d.qpos[ids.robot_qpos].copy()))
+        if self.in_flight and self.n % self.ball_every == 0:
+            x = d.qpos[bq:bq + 3].copy()
+            if self.noise_m > 0:
+                x = x + self.rng.normal(0.0, self.noise_m, 3)
+            self.ball_samples.append((t, x))
+
+    def _contacts(self) -> set:
+        """Geoms the ball touched in the last step (MuJoCo's contacts of that step)."""
+        d, out = self.d, set()
+        for i in range(d.ncon):
+            g1, g2 = int(d.contact.geom1[i]), int(d.contact.geom2[i])
+            if g1 == self.ball_geom:
+                out.add(g2)
+            elif g2 == self.ball_geom:
+                out.add(g1)
+        return out
+
+    def _update_events(self, prev: np.ndarray, t: float) -> None:
+        ev = self.events
+        if ev is None or ev.done:
+            return
+        tab = self.cfg.table
+        pos = self.d.qpos[self.ids.ball_qpos:self.ids.ball_qpos + 3]
+        touched = self._contacts() if self.d.ncon else set()
+        if self.ids.paddle_geom in touched and not ev.hit:
+            ev.hit, ev.t_hit = True, t
+        if self.net_geom in touched:
+            ev.net = True
+        on_table = self.table_geom in touched
+        if on_table and not ev.hit and pos[0] < 0:
+            ev.bounce_own = True
+        if on_table and ev.hit and not ev.landed:
+            ev.landed, ev.landing, ev.t_land = True, pos[:2].copy(), t
+            ev.on_opponent = bool(pos[0] > 0)
+        height = tab.top_z + self.cfg.ball.radius
+        off_table = abs(pos[0]) > tab.half_length or abs(pos[1]) > tab.half_width
+        if (ev.hit and not ev.landed and not on_table and off_table
+                and prev[2] >= height > pos[2]):
+            frac = float(np.clip((prev[2] - height) / max(prev[2] - pos[2], 1e-9), 0.0, 1.0))
+            ev.landed, ev.t_land = True, t
+            ev.landing = prev[:2] + frac * (pos[:2] - prev[:2])
+        if pos[2] < tab.top_z - 0.05:
+            ev.fell = True
+        if ev.landed or ev.fell:
+            ev.done, ev.t_done = True, t
+
+    def _room(self) -> None:
+        """Floor and barriers: the ball stays in the tracked volume."""
+        d, bq, bv = self.d, self.ids.ball_qpos, self.ids.ball_qvel
+        r = self.cfg.ball.radius
+        pos, vel = d.qpos[bq:bq + 3], d.qvel[bv:bv + 6]
+        if pos[2] < r:
+            pos[2] = r
+            if vel[2] < 0:
+                vel[2] = -0.5 * vel[2]
+            vel[:2] *= 0.7
+            vel[3:] = 0.0
+        for axis, lim in ((0, self.room[0]), (1, self.room[1])):
+            if abs(pos[axis]) > lim:
+                pos[axis] = math.copysign(lim, pos[axis])
+                vel[0:2] = 0.0
+                vel[3:] = 0.0
+
+
+# --------------------------------------------------------------------------------------------
+# Episodes
+# --------------------------------------------------------------------------------------------
+def complete_episode(ep: Episode, ev: ThrowEvents | None, contract: Contract) -> Episode:
+    """The runner's episode with the station's events and the true launch filled in."""
+    tr = ep.traj
+    if ev is None:
+        meta = {**ep.meta, "events_detected": False, "station": "sim"}
+        return Episode(tr, ep.extras, meta)
+    t0, T = float(ep.meta["t0"]), contract.horizon
+    hit_step = -1
+    if ev.hit:
+        hit_step = int(np.clip(math.floor((ev.t_hit - t0) / contract.dt + 1e-9), 0, T - 1))
+    landing = ev.landing if (ev.hit and ev.landed) else np.full(2, np.nan)
+    traj = record.to_numpy(tr._replace(
+        hit=np.array([ev.hit]), hit_step=np.array([hit_step], np.int32),
+        landing=np.asarray(landing, np.float32)[None],
+        on_opponent=np.array([ev.hit and ev.landed and ev.on_opponent]),
+        bounce_own=np.array([ev.bounce_own]), net=np.array([ev.net]),
+        launch_pos=ev.launch_pos[None], launch_vel=ev.launch_vel[None],
+        launch_spin=ev.launch_spin[None], aim=ev.aim[None]))
+    meta = {**ep.meta, "events_detected": True, "events": ev.to_dict(), "station": "sim"}
+    return Episode(traj, ep.extras, meta)
+
+
+def play(runner: Runner, station: SimStation, goals, out_dir: str | None = None,
+         prefix: str = "episode", throw_delay_s: float = 0.3, finish_s: float = 3.0) -> list[Episode]:
+    """One episode per goal [N, 2], as Runner.run_episodes (move home, throw, run, save
+    `<prefix>_<i:04d>`; stop if the runner ends in HOLD), with each episode completed by the
+    station's events before it is saved. A throw that never reached the robot (NoBallError)
+    disarms and moves on to the next goal."""
+    episodes = []
+    for i, goal in enumerate(check_goals(goals)):
+        if runner.mode == Mode.HOLD or not runner.move_home():
+            break
+        station.throw_in(throw_delay_s)
+        try:
+            ep = runner.run_episode(goal)
+        except NoBallError:
+            runner.disarm()
+            station.finish_throw(finish_s)
+            continue
+        ev = station.finish_throw(finish_s)
+        if ep is None:
+            break
+        ep = complete_episode(ep, ev, runner.contract)
+        ep.meta["episode"] = i
+        if out_dir is not None:
+            save_episode(out_dir, f"{prefix}_{i:04d}", ep)
+        episodes.append(ep)
+        if runner.mode == Mode.HOLD:
+            break
+    return episodes
+
+
+def _nan_to_none(x):
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _nan_to_none(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_nan_to_none(v) for v in x]
+    return x
+
+
+def summarize(runner: Runner, station: SimStation, episodes: list[Episode], goals: np.ndarray,
+              wall_s: float) -> dict:
+    """The JSON summary of a session: goal metrics, safety, timing."""
+    from eval.metrics import goal_metrics
+    if episodes:
+        landing = np.concatenate([e.traj.landing for e in episodes])
+        goal = np.concatenate([e.traj.goal for e in episodes])
+        hit = np.concatenate([e.traj.hit for e in episodes])
+        metrics = goal_metrics(landing, goal, hit)
+        metrics["on_opponent"] = float(np.mean(np.concatenate([e.traj.on_opponent for e in episodes])))
+    else:
+        metrics = {"within_30cm": 0.0, "within_20cm": 0.0, "mean_dist": float("nan"),
+                   "hit_rate": 0.0, "goals": 0, "on_opponent": 0.0}
+    t, q = station.robot.command_log()
+    v = count_violations(runner.limits, t, q,
+                         start=station.robot.true_at_send[0] if len(t) else None)
+    lat = np.concatenate([e.extras["latency"] for e in episodes]) if episodes else np.zeros(0)
+    lat = lat[np.isfinite(lat)] * 1e3
+    sim_s = station.time - station.t_origin
+    return _nan_to_none({
+        "episodes": len(episodes), "goals": int(len(goals)), "metrics": metrics,
+        "violations": v._asdict(), "commands": int(len(t)),
+        "mode": runner.mode.value, "overruns": runner.overruns, "skipped": runner.skipped,
+        "faults": dict(runner.fault_counts), "ends": [e.meta["end"] for e in episodes],
+        "landings": [[None if not np.isfinite(x) else float(x) for x in e.traj.landing[0]]
+                     for e in episodes],
+        "latency_ms": ({"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
+                        "max": float(lat.max())} if lat.size else None),
+        "policy_hash": runner.policy_hash, "control_hz": runner.contract.control_hz,
+        "sim_s": float(sim_s), "wall_s": float(wall_s),
+        "realtime_factor": float(sim_s / wall_s) if wall_s > 0 else None,
+    })
+
+
+def run_sim(policy_dir: str, goals, out_dir: str | None = None, seed: int = 0,
+            distribution: str | None = None, realtime: bool = False, charge_compute: bool = True,
+            throw_delay_s: float = 0.3, config: RunnerConfig = RunnerConfig()) -> dict:
+    """Load an export (every check of deploy.export.load_export), build the simulated station
+    in the export's World (throws from `distribution` if given) and play one episode per goal
+    [N, 2]; returns the summary (summarize) plus the export's self-test error."""
+    from deploy.export import export_world, load_export
+    from deploy.hardware import MonotonicClock
+    policy, contract = load_export(policy_dir)
+    cfg = export_world(policy.contract_doc)
+    if distribution:
+        cfg = cfg.with_throws(distribution)
+    goals = check_goals(goals)
+    clock = MonotonicClock() if realtime else SimClock(charge_compute=charge_compute)
+    station = SimStation(cfg, contract, clock=clock, seed=seed)
+    runner = Runner(station.robot, station.tracker, clock, policy, contract, config)
+    if out_dir is not None:
+        os.makedirs(out_dir, exist_ok=True)
+    wall = time.perf_counter()
+    episodes = play(runner, station, goals, out_dir, throw_delay_s=throw_delay_s)
+    out = summarize(runner, station, episodes, goals, time.perf_counter() - wall)
+    out.update({"policy": policy_dir, "self_test_error": policy.self_test_error,
+                "distribution": cfg.throws.name, "out": out_dir, "seed": seed})
+    if out_dir is not None:
+        with open(os.path.join(out_dir, "session.json"), "w") as f:
+            json.dump(out, f, indent=1)
+    return out
