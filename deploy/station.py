@@ -230,6 +230,7 @@ class SimStation:
         self.events: ThrowEvents | None = None
         self.throw_log: list[ThrowEvents] = []
         self.physics_steps = 0
+        self.trace: list | None = None     # set to [] to record (ball [6], blade centre [3]) per step
         self.robot, self.tracker = SimRobot(self), SimTracker(self)
 
     def _steps_per(self, hz: float, name: str) -> int:
@@ -274,12 +275,20 @@ class SimStation:
         self._throw_i += 1
         return th.launch_pos[i], th.launch_vel[i], th.launch_spin[i], th.aim[i]
 
-    def throw_in(self, delay_s: float = 0.3) -> None:
-        """Launch the next sampled throw delay_s from now (a throw in flight is removed)."""
+    def throw_in(self, delay_s: float = 0.3, throw=None) -> None:
+        """Launch the next sampled throw delay_s from now (a throw in flight is removed).
+
+        throw: (launch_pos [3], launch_vel [3], launch_spin [3], aim [2]) to launch instead of
+        a sampled one (tests, or replaying a logged launch)."""
+        if throw is None:
+            with self._excluded():              # sampling (JAX) is the station's time, not the runner's
+                throw = self._next_throw()
+        else:
+            throw = tuple(np.asarray(x, np.float64).reshape(n) for x, n in zip(throw, (3, 3, 3, 2)))
         now = self.sync()
         if self.in_flight:
             self._park()
-        self.pending = (now + float(delay_s), self._next_throw())
+        self.pending = (now + float(delay_s), throw)
 
     def _launch(self, t: float) -> None:
         _, (pos, vel, spin, aim) = self.pending
@@ -320,11 +329,15 @@ class SimStation:
         now = float(self.clock.now())
         target = int(math.floor((now - self.t_origin) / self.dt + 1e-9))
         if target > self.n:
-            excluded = getattr(self.clock, "excluded", None)
-            with (excluded() if excluded is not None else contextlib.nullcontext()):
+            with self._excluded():
                 while self.n < target:
                     self._step()
         return now
+
+    def _excluded(self):
+        """The clock's `excluded()` (SimClock with charge_compute) or a no-op."""
+        excluded = getattr(self.clock, "excluded", None)
+        return excluded() if excluded is not None else contextlib.nullcontext()
 
     def _step(self) -> None:
         d, ids = self.d, self.ids
@@ -340,6 +353,8 @@ class SimStation:
         t = self.time
         if self.in_flight:
             self._update_events(prev, t)
+            if self.trace is not None:
+                self.trace.append((self.ball(), d.sensordata[:3].copy()))
             self._room()
         else:
             self._park()

@@ -54,7 +54,7 @@ def test_population_policy_matches_the_single_policy():
     single = es.mlp_policy()
     frame = jnp.concatenate([jnp.array(CFG.robot.home), jnp.array([-1.2, -0.3, 0.95]), jnp.array([2.0, 0.0])])
     obs = env.Obs(frame=frame, ball_vel=jnp.array([-4.0, -1.0, 1.0]), frames=frame[None], t=jnp.int32(3))
-    _, a_pop = pop.apply(thetas, None, obs, None)
+    _, a_pop = jax.jit(pop.apply)(thetas, jnp.zeros(()), obs, jax.random.PRNGKey(0))   # traceable
     _, a_one = single.apply({**fixed, **unravel(thetas[2])}, None, obs, None)
     np.testing.assert_allclose(a_pop, a_one, rtol=1e-6)
 
@@ -97,3 +97,14 @@ def test_shipped_weights_load_without_pickle_and_run_on_c():
     assert np.abs(traj.actions[:, 60] - traj.actions[:, 0]).max() > 0.01
     r = es.shaped_reward(traj, es.Paddle(CFG))
     assert r["reward"].shape == (n,) and np.all(np.isfinite(r["reward"]))
+
+
+def test_train_es_runs_end_to_end(tmp_path):
+    ckpt = str(tmp_path / "best.npz")
+    params, hist = es.train_es(CFG, generations=2, population=4, seed=0, progress=False,
+                               throws_per_candidate=2, pool=8, val_throws=8, eval_every=1,
+                               checkpoint=ckpt)
+    assert len(hist) == 2 and all(np.isfinite(h["fitness_mean"]) for h in hist)
+    assert {"hit_rate", "return_rate", "val_hit_rate", "best_generation"} <= set(hist[-1])
+    saved = es.load_params(ckpt)
+    assert all(np.array_equal(saved[k], np.asarray(params[k])) for k in es.PARAM_NAMES)

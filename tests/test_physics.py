@@ -54,7 +54,7 @@ def _flight_experiments():
               cal.free_flight_throws(CFG, seed=2, n=N_PARITY - half, spin=True),
               cal.table_throws(CFG, seed=4, n=N_TABLE_THROWS)]
     pos, vel, spin, quat = (np.concatenate(x) for x in zip(*throws))
-    return cal._place_ball(CFG, pos, vel, spin, quat)
+    return cal.ball_states(CFG, pos, vel, spin, quat)
 
 
 IMPACT_PARTS, IMPACT_QPOS, IMPACT_QVEL, NET_SIDE = _impact_experiments()

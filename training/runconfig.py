@@ -45,9 +45,12 @@ class RunConfig:
     """auto: MJX on an accelerator, MuJoCo C on a CPU."""
     run_dir: str = "runs/default"
     keep_checkpoints: int = 3
+    checkpoint_every: int = 1
+    """Save every this many iterations (and at the end and on SIGTERM/Ctrl-C)."""
 
     def __post_init__(self):
-        for name in ("steps_between_ssp", "episodes_per_ssp", "eval_every", "eval_goals", "keep_checkpoints"):
+        for name in ("steps_between_ssp", "episodes_per_ssp", "eval_every", "eval_goals", "keep_checkpoints",
+                     "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"RunConfig.{name}={getattr(self, name)}, expected >= 1")
         for name in ("demos", "pretrain_steps", "total_trajectories"):
@@ -99,7 +102,7 @@ def paper_sim() -> RunConfig:
         policy=PolicyConfig(kind="lstm", hidden=1024, layers=2, obs_size=16),
         train=TrainConfig(window=96, batch_size=64, learning_rate=1e-4, members=1, capacity=131_072),
         demos=3600, pretrain_steps=5000, steps_between_ssp=100, episodes_per_ssp=1000,
-        total_trajectories=120_000, eval_every=10_000, run_dir="runs/paper-sim")
+        total_trajectories=120_000, eval_every=10_000, checkpoint_every=20, run_dir="runs/paper-sim")
 
 
 def paper_sim_new() -> RunConfig:
@@ -112,7 +115,7 @@ def paper_sim_new() -> RunConfig:
         train=TrainConfig(window=96, batch_size=64, learning_rate=3e-4, members=10, capacity=131_072,
                           action_noise=0.2),
         demos=3600, pretrain_steps=5000, steps_between_ssp=100, episodes_per_ssp=1000,
-        total_trajectories=100_000, eval_every=10_000, run_dir="runs/paper-sim-new")
+        total_trajectories=100_000, eval_every=10_000, checkpoint_every=20, run_dir="runs/paper-sim-new")
 
 
 def tiny() -> RunConfig:

@@ -290,7 +290,8 @@ class Run:
                 if is_eval_iteration(cfg, it):
                     row.update({f"eval_{k}": v for k, v in self.evaluate(state.params, jax.random.fold_in(base, 10**6 + it)).items()})
                     last = row
-                self.save(ck)
+                if (it + 1) % cfg.checkpoint_every == 0 or it + 1 == stop_at or self._stop:
+                    self.save(ck)
                 self._write_metrics(row)
                 bar.update(new_traj if practise else 0)
                 bar.set_postfix_str(_postfix(row))
@@ -322,7 +323,7 @@ def _postfix(row: dict) -> str:
 
 
 # Fields that may differ when resuming (they do not change the computation).
-RESUME_MAY_CHANGE = {"run_dir", "data", "keep_checkpoints", "total_trajectories"}
+RESUME_MAY_CHANGE = {"run_dir", "data", "keep_checkpoints", "total_trajectories", "checkpoint_every"}
 
 
 def config_dict(cfg: RunConfig) -> dict:

@@ -72,9 +72,10 @@ def surface_face(cfg: World, surface: str) -> tuple[np.ndarray, np.ndarray, floa
     return d.geom_xpos[g] + half * normal, normal, half
 
 
-def _place_ball(cfg: World, pos, vel, spin_world=None, quat=None):
-    """qpos [B, nq], qvel [B, nv]: the robot at home, the ball at pos [B, 3] with velocity
-    vel [B, 3], world angular velocity spin_world [B, 3] and orientation quat [B, 4] (w, x, y, z)."""
+def ball_states(cfg: World, pos, vel, spin_world=None, quat=None) -> tuple[np.ndarray, np.ndarray]:
+    """qpos [B, nq], qvel [B, nv]: the robot at rest at home, the ball at pos [B, 3] with
+    velocity vel [B, 3], world angular velocity spin_world [B, 3] (default 0) and orientation
+    quat [B, 4] (w, x, y, z; default identity)."""
     m = scene.model(cfg)
     ids = scene.ids(m)
     pos, vel = np.atleast_2d(pos), np.atleast_2d(vel)
@@ -111,7 +112,7 @@ def impact_states(cfg: World, surface: str, normal_speeds, phases) -> tuple[np.n
     speeds = np.repeat(np.asarray(normal_speeds, np.float64), len(phases))
     ph = np.tile(np.asarray(phases, np.float64), len(normal_speeds))
     gap = cfg.ball.radius + speeds * cfg.physics_dt * (LEAD_STEPS + ph)
-    return _place_ball(cfg, point + gap[:, None] * normal, -speeds[:, None] * normal)
+    return ball_states(cfg, point + gap[:, None] * normal, -speeds[:, None] * normal)
 
 
 # --- running -----------------------------------------------------------------------------------
@@ -250,7 +251,7 @@ def flight_positions(physics, pos, vel, spin_world, quat, n_control: int) -> np.
     """[B, T, 3] ball positions after each physics step (T = n_control * substeps) for balls
     launched from pos [B, 3] with velocity vel [B, 3], world angular velocity spin_world [B, 3]
     and orientation quat [B, 4], the robot held at home."""
-    qpos, qvel = _place_ball(physics.cfg, pos, vel, spin_world, quat)
+    qpos, qvel = ball_states(physics.cfg, pos, vel, spin_world, quat)
     return ball_trajectories(physics, qpos, qvel, n_control)[0][..., :3]
 
 
@@ -294,7 +295,7 @@ def net_throws(cfg: World, seed: int, n: int, max_speed: float = 20.0):
     vel = direction * rng.uniform(2.0, max_speed, (n, 1))
     pos = hit - vel * cfg.physics_dt * (LEAD_STEPS + rng.uniform(0.0, 1.0, (n, 1)))
     spin = rng.uniform(-cfg.throws.max_spin, cfg.throws.max_spin, (n, 3))
-    qpos, qvel = _place_ball(cfg, pos, vel, spin)
+    qpos, qvel = ball_states(cfg, pos, vel, spin)
     return qpos, qvel, side
 
 

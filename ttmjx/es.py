@@ -8,7 +8,15 @@ Scalable Alternative to Reinforcement Learning"): Gaussian perturbations of the 
 with antithetic (mirrored) sampling, centred-rank fitness shaping, the gradient estimate
 `sum_i F_i eps_i / (n sigma)` and Adam with L2 weight decay on the mean. It is written here in JAX
 over `Backend.rollout` instead of brax's ES trainer, which needs a brax Env on MJX (~1k physics
-steps/s on a CPU); the same code runs on either backend (`backend="mjx"` on a GPU).
+steps/s on a CPU). It only calls `Backend.rollout`, so `backend="mjx"` (a GPU) takes the same path
+(the population policy is jit-traceable); the shipped weights were trained on the C backend and
+the MJX path has not been exercised.
+
+The shipped weights (ttmjx/assets/es_policy.json holds the run and the measured numbers): 134
+generations x 48 candidates x 8 narrow throws (~51k episodes, 14.5 min on 2 shared CPU cores).
+On 200 fresh narrow throws the policy hits 98% of the balls and returns none: it learned to put
+the blade in the ball's path (a block), and the blocked balls fall back on the robot's half. Like
+the paper's ES policy it is narrow: trained at 100 Hz on the narrow throws only.
 
 The policy (`mlp_policy`) is a small MLP for ONE throw over the observation's joints (8), ball
 position (3) and ball velocity (3) (`env.Obs`: frame[:11] and ball_vel; the velocity is read
@@ -181,7 +189,9 @@ def load_params(path: str) -> dict:
 
 def load_policy(cfg: World, params_dir: str | None = None):
     """(Policy, params) of the ES source. params_dir: a directory holding es_policy.npz (default:
-    the shipped weights in ttmjx/assets/) or the path of an .npz file itself."""
+    the shipped weights in ttmjx/assets/) or the path of an .npz file itself. The home pose and
+    the normalisation come from the weights file, not from cfg; the shipped policy was trained at
+    100 Hz on narrow throws and is not meant for other rates or distributions."""
     path = params_dir or ASSETS
     if os.path.isdir(path):
         path = os.path.join(path, WEIGHTS_NAME)

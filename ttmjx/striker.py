@@ -75,17 +75,24 @@ class StrikerConfig:
     target_y: tuple = (-0.6, 0.6)
     # The return's ball-centre height above the net tape where it crosses the net (drag-free plan).
     net_clearance: tuple = (0.10, 0.40)
+    min_clearance: float = 0.05     # lowered down to this when the episode's time runs short
     # The hitting plane: the ball is struck, after its bounce, where it crosses x = hit_x.
     hit_x: tuple = (-1.62, -1.42)
-    # Blade roll: the angle of the extension (link6 x) in the blade plane from "pointing down".
+    # Blade roll: the angle of the extension (link6 x) in the blade plane from "pointing down"
+    # (positive toward +y); the hit's y adds roll_per_y (deg/m) so that the blade reaches out
+    # sideways toward a wide ball, the result clipped to roll_deg.
     roll_deg: tuple = (-80.0, 80.0)
+    roll_per_y: float = 90.0
+    # Posture: the gantry carriage this far behind the hit, and following this fraction of its y.
+    reach_x: float = 0.45
+    gantry_follow_y: float = 0.7
     # Strike: constant acceleration from rest over this time up to the hit; then a follow-through.
     strike_s: tuple = (0.12, 0.2)
     hold_s: float = 0.02          # the hit velocity is held this long before and after the hit
     follow_s: float = 0.08        # then decays with this time constant
     # Extra command lead over the servo's velocity feed-forward (coupling and the real inertia
     # lag the ideal servo a little).
-    servo_lead_s: float = 0.004
+    servo_lead_s: float = 0.0
     # Joint speeds the plan may use, as a fraction of the speed limits.
     hit_speed_frac: float = 0.7
     approach_speed_frac: float = 0.9
@@ -175,7 +182,7 @@ _W_NORMAL, _W_ROLL = 0.4, 0.1    # m per unit direction error: the normal matter
 
 
 # Room the IK leaves at each joint's limits for the back-swing and the follow-through (m, rad).
-_SWING_ROOM = (0.03, 0.1, 0.3, 0.3, 0.3, 0.4, 0.5, 0.5)
+_SWING_ROOM = (0.03, 0.05, 0.3, 0.3, 0.3, 0.4, 0.35, 0.5)
 
 
 def solve_ik(cfg: World, q, pos, normal, ext, q_pref, iters: int):
@@ -390,15 +397,27 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
     lo_m, hi_m = _limits(cfg, 0.01)
     contact_offset = b.radius + r.blade_thickness / 2
     omega = r.servo_omega
+    zeta = getattr(r, "servo_damping", 1.0)   # kv / kp = 2 zeta / omega (scene.py)
 
     def posture(p_hit, roll, face):
         """The IK's posture preference for a hit: gantry behind and partly under the ball, the
         forearm level and pointing forward, the wrist pitched so that the extension hangs down
         (j5 near 90 deg), then rolled sideways by j4 and the face chosen by j6."""
-        gx = jnp.clip(p_hit[0] + 0.45 - r.base_x, r.lower[0], r.upper[0])
-        gy = jnp.clip(0.6 * (p_hit[1] - r.base_y), r.lower[1], r.upper[1])
+        gx = jnp.clip(p_hit[0] - scfg.reach_x - r.base_x, r.lower[0], r.upper[0])
+        gy = jnp.clip(scfg.gantry_follow_y * (p_hit[1] - r.base_y), r.lower[1], r.upper[1])
         j6 = jnp.where(face > 0, 0.0, math.pi)
         return jnp.stack([gx, gy, 0.0, 0.2, -0.4, roll, 0.5 * math.pi - 0.3, j6])
+
+    def roll_at(roll, p_hit):
+        deg = math.pi / 180.0
+        return jnp.clip(roll + scfg.roll_per_y * deg * (p_hit[1] - r.base_y),
+                        scfg.roll_deg[0] * deg, scfg.roll_deg[1] * deg)
+
+    def flight_time(p_hit, t_hit, target, clearance):
+        """The return's flight time: from its net clearance, but landing within the episode."""
+        t_left = cfg.episode_s - t_hit - 2 * dt
+        t_min = return_time(cfg, p_hit, target, jnp.asarray(scfg.min_clearance))
+        return jnp.maximum(jnp.minimum(return_time(cfg, p_hit, target, clearance), t_left), t_min)
 
     def plan_hit(carry: StrikerState, p, v, w, t_now):
         """(t_hit, p_hit, v_in, w_in, found) from the predicted flight."""
@@ -469,14 +488,15 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
 
         # -- the hit and the stroke
         t_hit, p_hit, v_in, w_in, found = plan_hit(carry, p, v, spin, t_now)
-        duration = return_time(cfg, p_hit, carry.target, carry.clearance)
+        duration = flight_time(p_hit, t_hit, carry.target, carry.clearance)
         guess = stroke_guess(cfg, scfg, p_hit, v_in, carry.target, duration)
         theta = solve_stroke(cfg, scfg, jnp.where(first, guess, carry.theta), p_hit, v_in, w_in,
                              carry.target, duration)
         theta = jnp.where(jnp.all(jnp.isfinite(theta)), theta, guess)
         normal = _direction(theta[0], theta[1])
-        z_t, x_t = blade_frame(normal, carry.roll, carry.face)
-        q_pref = posture(p_hit, carry.roll, carry.face) + carry.posture_offset
+        roll = roll_at(carry.roll, p_hit)
+        z_t, x_t = blade_frame(normal, roll, carry.face)
+        q_pref = posture(p_hit, roll, carry.face) + carry.posture_offset
         q_hit = solve_ik(cfg, carry.q_hit, p_hit - contact_offset * normal, z_t, x_t, q_pref,
                          scfg.ik_iters)
         qd_hit = blade_joint_velocity(cfg, q_hit, theta[2] * normal, scfg.hit_speed_frac)
@@ -511,7 +531,7 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
         q_new = jnp.clip(q_new, lo, hi)
 
         # -- the command: servo feed-forward, the per-episode joint offsets, limits
-        u = q_new + (2.0 / omega + scfg.servo_lead_s) * v_new + a_new / omega**2 + carry.offset
+        u = q_new + (2.0 * zeta / omega + scfg.servo_lead_s) * v_new + a_new / omega**2 + carry.offset
         u = jnp.clip(u, lo, hi)
         step_max = vmax * r.speed_margin * dt
         u = jnp.clip(u, u_prev - step_max, u_prev + step_max)

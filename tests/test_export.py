@@ -1,0 +1,310 @@
+"""Export (safetensors + contract + golden self-test), numpy inference equal to the JAX policies,
+and every refusal of a tampered or mismatched export."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from deploy import ROBOT_MODEL_ID, Contract, ExportError, load_export, read_contract
+from deploy.export import (CONTRACT_FILE, GOLDEN_FILE, WEIGHTS_FILE, export, params_from_checkpoint,
+                           sha256_bytes)
+from deploy.numpy_policy import ExportedPolicy, PolicySpec, benchmark, tensor_shapes
+from models import (Normalizer, PolicyConfig, PolicyParams, init_ensemble, init_params, make_policy,
+                    member)
+from ttmjx.config import World
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+LSTM = PolicyConfig(kind="lstm", hidden=32, layers=2)
+MLP = PolicyConfig(kind="framestack", hidden=32, layers=2, frame_stack=4)
+
+
+def random_norm(key, obs_size=13) -> Normalizer:
+    k = jax.random.split(key, 4)
+    return Normalizer(jax.random.normal(k[0], (obs_size,)), jnp.exp(0.3 * jax.random.normal(k[1], (obs_size,))),
+                      jax.random.normal(k[2], (8,)), jnp.exp(0.3 * jax.random.normal(k[3], (8,))))
+
+
+def random_params(pcfg, seed=0, members=None) -> PolicyParams:
+    """Initialized params with every leaf (biases too) perturbed, and a random normalizer."""
+    key = jax.random.key(seed)
+    norm = random_norm(jax.random.fold_in(key, 1), pcfg.obs_size)
+    p = (init_params(key, pcfg, norm) if members is None
+         else init_ensemble(key, pcfg, norm, members))
+    leaves, tree = jax.tree.flatten(p.net)
+    keys = jax.random.split(jax.random.fold_in(key, 2), len(leaves))
+    leaves = [x + 0.2 * jax.random.normal(k, x.shape) for x, k in zip(leaves, keys)]
+    return p._replace(net=jax.tree.unflatten(tree, leaves))
+
+
+def observations(steps, k, seed=0):
+    """[L, 13] frames of plausible scale and their [L, k, 13] stacks (the runner's padding)."""
+    rng = np.random.default_rng(seed)
+    frames = (rng.standard_normal((steps, 13)) * np.r_[[0.2] * 2, [1.0] * 6, [1.0, 0.4, 0.2], [0.5] * 2]
+              + np.r_[[0.0] * 8, [0.0, 0.0, 0.9], [0.7, 0.0]]).astype(np.float32)
+    idx = np.clip(np.arange(steps)[:, None] - (k - 1) + np.arange(k)[None, :], 0, steps - 1)
+    return frames, frames[idx]
+
+
+class _Obs:
+    def __init__(self, frame, frames):
+        self.frame, self.frames, self.ball_vel = frame, frames, jnp.zeros(3)
+
+
+def jax_actions(pcfg, params, frames, stacks):
+    """[L, 8] from models.make_policy (one member), from a zero state."""
+    pol = make_policy(pcfg)
+
+    @jax.jit
+    def run(p, f, s):
+        body = lambda c, xs: pol.apply(p, c, _Obs(*xs), None)  # noqa: E731
+        return jax.lax.scan(body, pol.init(p, None), (f, s))[1]
+    return np.asarray(run(params, jnp.asarray(frames), jnp.asarray(stacks)))
+
+
+def numpy_policy(pcfg, params) -> ExportedPolicy:
+    from deploy.export import policy_tensors, select_members
+    tensors, is_ens = policy_tensors(params)
+    tensors, _ = select_members(tensors, is_ens, None, is_ens)
+    return ExportedPolicy(PolicySpec(pcfg.kind, pcfg.hidden, pcfg.layers, pcfg.obs_size,
+                                     pcfg.frame_stack), tensors)
+
+
+# --------------------------------------------------------------------------- numpy == JAX
+@pytest.mark.parametrize("pcfg,steps", [(LSTM, 300), (MLP, 100)], ids=["lstm", "framestack"])
+def test_numpy_policy_equals_jax_over_many_steps(pcfg, steps):
+    params = random_params(pcfg, seed=3)
+    frames, stacks = observations(steps, pcfg.frame_stack, seed=4)
+    want = jax_actions(pcfg, params, frames, stacks)
+    pol = numpy_policy(pcfg, params)
+    state, got = pol.reset(), []
+    for t in range(steps):
+        before = None if state is None else state.copy()
+        state, a = pol.step(state, frames[t], stacks[t])
+        if before is not None:
+            assert not np.shares_memory(before, state)
+        got.append(a)
+    got = np.asarray(got)
+    assert got.shape == (steps, 8) and got.dtype == np.float32
+    assert np.abs(want).max() > 0.5            # a non-trivial output, not all zeros
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-5)
+    # A reset restarts the episode: the same first action again.
+    _, a0 = pol.step(pol.reset(), frames[0], stacks[0])
+    np.testing.assert_allclose(a0, want[0], rtol=0, atol=1e-5)
+
+
+def test_numpy_policy_rejects_wrong_inputs():
+    pol = numpy_policy(LSTM, random_params(LSTM))
+    with pytest.raises(ValueError, match="frame has shape"):
+        pol.step(pol.reset(), np.zeros(16), np.zeros((8, 16)))
+    with pytest.raises(ValueError, match="state has shape"):
+        pol.step(np.zeros((1, 2, 2, 31)), np.zeros(13), np.zeros((8, 13)))
+    mlp = numpy_policy(MLP, random_params(MLP))
+    assert mlp.reset() is None
+    with pytest.raises(ValueError, match="frames has shape"):
+        mlp.step(None, np.zeros(13), np.zeros((8, 13)))
+
+
+# --------------------------------------------------------------------------- export round trip
+@pytest.fixture(scope="module")
+def ensemble_export(tmp_path_factory):
+    """A 3-member LSTM ensemble exported at 20 Hz (made once for the module)."""
+    params = random_params(LSTM, seed=5, members=3)
+    out = str(tmp_path_factory.mktemp("exports") / "ens")
+    export(params, LSTM, World(), out, ensemble=True, source="ckpt/run@7", control_hz=20)
+    return out, params
+
+
+def test_export_round_trip_and_golden_self_test(ensemble_export):
+    out, params = ensemble_export
+    assert sorted(os.listdir(out)) == sorted([CONTRACT_FILE, WEIGHTS_FILE, GOLDEN_FILE])
+    pol, contract = load_export(out)
+    assert isinstance(contract, Contract) and contract.control_hz == 20.0 and contract.horizon == 32
+    assert pol.members == 3 and pol.state_shape == (3, 2, 2, 32)
+    assert 0.0 <= pol.self_test_error <= 1e-5
+    with open(os.path.join(out, WEIGHTS_FILE), "rb") as f:
+        assert pol.policy_hash == "sha256:" + sha256_bytes(f.read())
+    doc = read_contract(out)
+    assert doc["robot"]["model_id"] == ROBOT_MODEL_ID
+    assert doc["robot"]["joint_names"][:2] == ["gantry_x", "gantry_y"]
+    assert doc["observation"]["frame"][8:] == ["ball_x", "ball_y", "ball_z", "goal_x", "goal_y"]
+    assert doc["policy"]["state"]["shape"] == [3, 2, 2, 32] and "mean" in doc["policy"]["ensemble_rule"]
+    assert doc["source"] == {**doc["source"], "checkpoint": "ckpt/run@7", "members": [0, 1, 2]}
+    assert doc["goal"]["units"] == "m" and doc["runtime"]["control_hz"] == 20.0
+    assert {k: tuple(v) for k, v in doc["weights"]["tensors"].items()} == tensor_shapes(pol.spec, 3)
+    # The ensemble's action is the mean of the members' JAX actions, on fresh inputs too.
+    frames, stacks = observations(40, 8, seed=9)
+    want = np.mean([jax_actions(LSTM, member(params, i), frames, stacks) for i in range(3)], axis=0)
+    np.testing.assert_allclose(pol.run(frames, stacks), want, rtol=0, atol=1e-5)
+
+
+def test_export_one_member_and_framestack(tmp_path):
+    params = random_params(LSTM, seed=5, members=3)
+    export(params, LSTM, World(), str(tmp_path / "m1"), member=1, control_hz=60)
+    pol, contract = load_export(str(tmp_path / "m1"))
+    assert pol.members == 1 and contract.control_hz == 60.0
+    frames, stacks = observations(20, 8, seed=2)
+    np.testing.assert_allclose(pol.run(frames), jax_actions(LSTM, member(params, 1), frames, stacks),
+                               rtol=0, atol=1e-5)
+    mlp = random_params(MLP, seed=6)
+    export(mlp, MLP, World(), str(tmp_path / "mlp"))
+    pol, contract = load_export(str(tmp_path / "mlp"))
+    assert contract.frame_stack == 4 and contract.control_hz == 100.0 and pol.reset() is None
+    frames, stacks = observations(20, 4, seed=2)
+    np.testing.assert_allclose(pol.run(frames, stacks), jax_actions(MLP, mlp, frames, stacks),
+                               rtol=0, atol=1e-5)
+
+
+def test_export_refuses_bad_requests(tmp_path, ensemble_export):
+    ens = random_params(LSTM, seed=5, members=2)
+    with pytest.raises(ExportError, match="ensemble of 2 members"):
+        export(ens, LSTM, World(), str(tmp_path / "a"))
+    with pytest.raises(ExportError, match="not both"):
+        export(ens, LSTM, World(), str(tmp_path / "a"), member=0, ensemble=True)
+    with pytest.raises(ExportError, match="out of range"):
+        export(ens, LSTM, World(), str(tmp_path / "a"), member=2)
+    with pytest.raises(ExportError, match="do not match the PolicyConfig"):
+        export(ens, PolicyConfig(hidden=16, layers=2), World(), str(tmp_path / "a"), member=0)
+    p16 = PolicyConfig(hidden=8, layers=1, obs_size=16)
+    with pytest.raises(ExportError, match="13 values"):
+        export(random_params(p16), p16, World(), str(tmp_path / "a"))
+    with pytest.raises(FileExistsError, match="refusing to overwrite"):
+        export(ens, LSTM, World(), ensemble_export[0], ensemble=True)
+
+
+# --------------------------------------------------------------------------- refusals
+def _copy(src, tmp_path, name="x"):
+    dst = str(tmp_path / name)
+    shutil.copytree(src, dst)
+    return dst
+
+
+def _edit_contract(d, fn):
+    path = os.path.join(d, CONTRACT_FILE)
+    with open(path) as f:
+        doc = json.load(f)
+    fn(doc)
+    with open(path, "w") as f:
+        json.dump(doc, f)
+
+
+def _rewrite_tensors(d, name, key, fn):
+    """Change a .safetensors file and make the contract's hash (and tensor list) match it, so
+    only the deeper checks can catch the change."""
+    from safetensors.numpy import load, save
+    path = os.path.join(d, name)
+    with open(path, "rb") as f:
+        tensors = dict(load(f.read()))
+    fn(tensors)
+    data = save(tensors)
+    with open(path, "wb") as f:
+        f.write(data)
+
+    def fix(doc):
+        doc[key]["sha256"] = sha256_bytes(data)
+        if key == "weights":
+            doc[key]["tensors"] = {k: list(v.shape) for k, v in tensors.items()}
+    _edit_contract(d, fix)
+
+
+def test_tampered_or_mismatched_exports_are_refused(ensemble_export, tmp_path):
+    src = ensemble_export[0]
+    cases = []
+
+    def case(name, match, mutate):
+        cases.append((name, match, mutate))
+
+    def flip_byte(d):
+        path = os.path.join(d, WEIGHTS_FILE)
+        data = bytearray(open(path, "rb").read())
+        data[-5] ^= 0x01
+        open(path, "wb").write(bytes(data))
+    case("weights byte flipped", "SHA-256", flip_byte)
+    case("golden byte flipped", "SHA-256", lambda d: open(os.path.join(d, GOLDEN_FILE), "ab").write(b"\0"))
+    case("weights missing", "missing", lambda d: os.remove(os.path.join(d, WEIGHTS_FILE)))
+    case("another robot", "for robot", lambda d: _edit_contract(
+        d, lambda c: c["robot"].__setitem__("model_id", "kuka-kr6/v1")))
+    case("joint order", "joint order", lambda d: _edit_contract(
+        d, lambda c: c["robot"].__setitem__("joint_names", c["robot"]["joint_names"][::-1])))
+    case("wider range", "beyond this robot", lambda d: _edit_contract(
+        d, lambda c: c["runtime"]["upper"].__setitem__(0, 0.5)))
+    case("faster", "beyond this robot", lambda d: _edit_contract(
+        d, lambda c: c["runtime"]["max_speed"].__setitem__(2, 9.0)))
+    case("hidden size", "has shape|do not match", lambda d: _edit_contract(
+        d, lambda c: c["policy"].__setitem__("hidden", 64)))
+    case("member count", "has shape|do not match", lambda d: _edit_contract(
+        d, lambda c: c["policy"].__setitem__("members", 2)))
+    case("tensor shape", "has shape", lambda d: _rewrite_tensors(
+        d, WEIGHTS_FILE, "weights", lambda t: t.__setitem__(
+            "net/params/head/kernel", np.zeros((3, 31, 8), np.float32))))
+    case("tensor dtype", "dtype", lambda d: _rewrite_tensors(
+        d, WEIGHTS_FILE, "weights", lambda t: t.__setitem__(
+            "net/params/head/bias", t["net/params/head/bias"].astype(np.float64))))
+    case("extra tensor", "unexpected", lambda d: _rewrite_tensors(
+        d, WEIGHTS_FILE, "weights", lambda t: t.__setitem__("net/params/lstm9/x", np.zeros((3, 1), np.float32))))
+    case("weights changed, hash fixed", "golden self-test failed", lambda d: _rewrite_tensors(
+        d, WEIGHTS_FILE, "weights", lambda t: t.__setitem__(
+            "net/params/head/bias", t["net/params/head/bias"] + 1e-3)))
+    case("golden changed, hash fixed", "golden self-test failed", lambda d: _rewrite_tensors(
+        d, GOLDEN_FILE, "golden", lambda t: t.__setitem__("member_actions", t["member_actions"] + 1e-4)))
+    case("normalization listed differs", "normalization", lambda d: _edit_contract(
+        d, lambda c: c["normalization"]["per_member"]["obs_std"][0].__setitem__(0, 2.0)))
+    case("not an export", "not a ttmjx-policy-export", lambda d: _edit_contract(d, lambda c: c.__setitem__("format", "x")))
+    case("runtime contract", "invalid runtime", lambda d: _edit_contract(
+        d, lambda c: c["runtime"].__setitem__("obs_size", 16)))
+    case("unknown runtime key", "invalid runtime", lambda d: _edit_contract(
+        d, lambda c: c["runtime"].__setitem__("pickle", True)))
+    for i, (name, match, mutate) in enumerate(cases):
+        d = _copy(src, tmp_path, f"case{i}")
+        mutate(d)
+        with pytest.raises(ExportError, match=match):
+            load_export(d)
+    # The intact export still loads; a robot with other joint names refuses it.
+    load_export(src)
+    with pytest.raises(ExportError, match="joint order"):
+        load_export(src, expected_joints=("a",) * 8)
+
+
+def test_load_needs_numpy_only(ensemble_export):
+    """The robot's side (load_export, the numpy policy, the runner) never imports JAX."""
+    code = ("import sys; from deploy.export import load_export; from deploy.runner import Runner; "
+            f"p, c = load_export({ensemble_export[0]!r}); "
+            "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('jax', 'jaxlib', 'flax', 'mujoco', 'torch')); "
+            "assert not bad, bad; print(p.members)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "3"
+
+
+def test_export_from_a_checkpoint_through_the_cli(tmp_path):
+    """ttmjx export CHECKPOINT: params found in a saved TrainState-like tree, PolicyConfig read
+    from the shapes, the world from the saved config."""
+    from training import checkpoint
+    from ttmjx.cli import main
+    from ttmjx.config import to_dict
+    params = random_params(MLP, seed=8, members=2)
+    world = World(frame_stack=4)
+    checkpoint.save(str(tmp_path / "run" / "checkpoints"), 3,
+                    {"params": params, "step": jnp.int32(3)}, {"world": to_dict(world)})
+    p2, pcfg, w2, source = params_from_checkpoint(str(tmp_path / "run"))
+    assert pcfg == MLP and w2 == world and source.endswith("@3/params")
+    main(["export", str(tmp_path / "run"), "--out", str(tmp_path / "exp"), "--member", "1",
+          "--control-hz", "20"])
+    pol, contract = load_export(str(tmp_path / "exp"))
+    assert pol.members == 1 and contract.control_hz == 20.0 and contract.frame_stack == 4
+    frames, stacks = observations(10, 4, seed=1)
+    np.testing.assert_allclose(pol.run(frames, stacks), jax_actions(MLP, member(params, 1), frames, stacks),
+                               rtol=0, atol=1e-5)
+
+
+def test_latency_benchmark_runs_on_one_thread():
+    res = benchmark("lstm", hidden=64, layers=2, steps=50, warmup=5)
+    assert res["threads"] == 1 and res["threads_env"]["OMP_NUM_THREADS"] == "1"
+    assert 0 < res["p50_ms"] <= res["p99_ms"] <= res["max_ms"]

@@ -1,0 +1,145 @@
+"""The GoalsEye trainer end to end on the C backend: learning above the starting point, exact
+resume after an interruption, SIGTERM saves, LFP/GCSL as configurations, eval CLI."""
+import dataclasses
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import jax
+import numpy as np
+import pytest
+
+from ttmjx import demos, record
+from training import checkpoint, runconfig
+from training.trainer import Run, is_eval_iteration, practice_iterations, pretrain_iterations
+
+
+@pytest.fixture(scope="module")
+def demo_dir(tmp_path_factory):
+    """200 scripted narrow demonstrations, collected once for the module."""
+    d = str(tmp_path_factory.mktemp("demos"))
+    cfg = runconfig.tiny()
+    traj = demos.collect(cfg.world, "scripted", 200, seed=5)
+    record.save(d, traj, {"source": "scripted", "distribution": "narrow", "seed": 5})
+    return d
+
+
+def tiny(demo_dir, run_dir, **kw):
+    return dataclasses.replace(runconfig.tiny(), demo_dir=demo_dir, run_dir=str(run_dir), **kw)
+
+
+def final_params(run_dir):
+    cfg = runconfig.from_json(checkpoint.restore_config(os.path.join(run_dir, "checkpoints")))
+    ck, _ = checkpoint.restore(os.path.join(run_dir, "checkpoints"), Run(cfg, progress=False).template())
+    return ck
+
+
+def test_schedule_evaluates_lfp_point_and_end():
+    cfg = runconfig.tiny()
+    n_pre, n_prac = pretrain_iterations(cfg), practice_iterations(cfg)
+    assert n_pre == 2 and n_prac == 4  # 40 / 20 steps; (328 - 200) / 32 rounds
+    evals = [i for i in range(n_pre + n_prac) if is_eval_iteration(cfg, i)]
+    assert evals[0] == n_pre - 1 and evals[-1] == n_pre + n_prac - 1 and len(evals) == 3
+
+
+@pytest.fixture(scope="module")
+def trained(demo_dir, tmp_path_factory):
+    """One uninterrupted tiny run (the reference for resume)."""
+    d = tmp_path_factory.mktemp("run_full")
+    out = Run(tiny(demo_dir, d), progress=False).run()
+    return d, out
+
+
+def test_tiny_training_learns_to_hit_above_its_start(trained, demo_dir, tmp_path):
+    """An untrained policy never returns a ball; GCBC on 200 demonstrations plus practice must
+    hit at least a quarter of them (the demonstrator hits > 90%)."""
+    run_dir, out = trained
+    assert out["finished"]
+    rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"))]
+    assert [r["iteration"] for r in rows] == list(range(len(rows)))
+    assert rows[-1]["trajectories"] == 328 and rows[-1]["cache_size"] >= 200
+    # The starting point: the same architecture, untrained.
+    cfg = tiny(demo_dir, tmp_path / "start")
+    run = Run(cfg, progress=False)
+    start = run.initial()
+    before = run.evaluate(start.state.params, jax.random.PRNGKey(0))
+    assert before["hit_rate"] <= 0.1
+    assert out["eval_hit_rate"] >= 0.25 > before["hit_rate"] + 0.1
+    assert os.path.exists(os.path.join(run_dir, "learning_curve.png"))
+    assert os.path.isdir(os.path.join(run_dir, "tensorboard"))
+    saved = json.load(open(os.path.join(run_dir, "config.json")))
+    assert runconfig.from_json(saved) == dataclasses.replace(cfg, run_dir=str(run_dir))
+
+
+def test_resume_after_interruption_is_bit_exact(trained, demo_dir, tmp_path):
+    full_dir, _ = trained
+    cfg = tiny(demo_dir, tmp_path / "run_split")
+    Run(cfg, progress=False).run(max_iterations=3)  # "killed" after 3 iterations
+    assert checkpoint.steps(os.path.join(cfg.run_dir, "checkpoints"))[-1] == 3
+    Run(cfg, progress=False).run()                   # resumed to the end
+    a, b = final_params(str(full_dir)), final_params(cfg.run_dir)
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    rows = [json.loads(line) for line in open(os.path.join(cfg.run_dir, "metrics.jsonl"))]
+    assert [r["iteration"] for r in rows] == list(range(6))  # no duplicated or lost rows
+
+
+def test_sigterm_saves_a_checkpoint_and_the_run_resumes(demo_dir, tmp_path):
+    run_dir = tmp_path / "sig"
+    cmd = [sys.executable, "-m", "ttmjx.cli", "train", "--preset", "tiny", "--run-dir", str(run_dir),
+           "--demo-dir", demo_dir, "--total-trajectories", "2000"]
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    ckpt = run_dir / "checkpoints"
+    t0 = time.time()
+    while time.time() - t0 < 300 and len(checkpoint.steps(str(ckpt))) < 2:
+        time.sleep(1)
+    p.send_signal(signal.SIGTERM)
+    out, _ = p.communicate(timeout=300)
+    assert p.returncode == 0, out
+    assert "SIGTERM" in out and "saved checkpoint" in out
+    saved = checkpoint.steps(str(ckpt))[-1]
+    assert saved >= 2
+    cfg = dataclasses.replace(runconfig.tiny(), demo_dir=demo_dir, run_dir=str(run_dir), total_trajectories=2000)
+    res = Run(cfg, progress=False).run(max_iterations=1)
+    assert res["iteration"] == saved + 1
+
+
+def test_lfp_and_gcsl_are_configurations(demo_dir, tmp_path):
+    lfp = runconfig.preset("lfp")
+    assert not lfp.practice and lfp.demos > 0
+    gcsl = runconfig.preset("gcsl")
+    assert gcsl.practice and gcsl.demos == 0
+    cfg = tiny(demo_dir, tmp_path / "lfp", practice=False)
+    out = Run(cfg, progress=False).run()
+    rows = [json.loads(line) for line in open(os.path.join(cfg.run_dir, "metrics.jsonl"))]
+    assert out["trajectories"] == 200 and all("practice_hit_rate" not in r for r in rows)
+    assert rows[-1]["updates"] == cfg.pretrain_steps + practice_iterations(cfg) * cfg.steps_between_ssp
+
+
+def test_resume_refuses_a_different_config(trained, demo_dir):
+    run_dir, _ = trained
+    cfg = tiny(demo_dir, run_dir, seed=3)
+    with pytest.raises(ValueError, match="different config"):
+        Run(cfg, progress=False).run()
+
+
+def test_eval_cli_reports_json_metrics(trained):
+    run_dir, _ = trained
+    out = subprocess.run([sys.executable, "-m", "ttmjx.cli", "eval", str(run_dir), "--goals", "20", "--json"],
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    assert set(res) >= {"within_30cm", "within_20cm", "mean_dist", "hit_rate", "goals"}
+    assert res["goals"] == 20 and 0 <= res["within_20cm"] <= res["within_30cm"] <= 1
+    five = subprocess.run([sys.executable, "-m", "ttmjx.cli", "eval", str(run_dir), "--goals", "five",
+                           "--per-goal", "2", "--json"], capture_output=True, text=True, timeout=600)
+    assert five.returncode == 0, five.stderr
+    res5 = json.loads(five.stdout.strip().splitlines()[-1])
+    assert sorted(res5["per_goal"]) == ["A", "B", "C", "D", "E"] and res5["goals"] == 10
+    bad = subprocess.run([sys.executable, "-m", "ttmjx.cli", "eval", "/nonexistent/run"], capture_output=True,
+                         text=True, timeout=120)
+    assert bad.returncode == 2 and "neither a run directory" in bad.stderr
