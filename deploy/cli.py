@@ -167,9 +167,13 @@ def cmd_robot_bench(args) -> None:
     from deploy.numpy_policy import benchmark
     out = benchmark(args.kind, args.hidden, args.layers, args.members, steps=args.steps,
                     threads=args.threads)
-    _print(args, out, f"{args.kind} {args.layers}x{args.hidden} x{args.members} on {args.threads} "
-                      f"thread(s): p50 {out['p50_ms']:.3f} ms, p99 {out['p99_ms']:.3f} ms, "
-                      f"max {out['max_ms']:.3f} ms")
+    text = (f"{args.kind} {args.layers}x{args.hidden} x{args.members} on {args.threads} thread(s), "
+            f"core {out['cpu']}: step p50 {out['p50_ms']:.3f} ms, p99 {out['p99_ms']:.3f} ms, "
+            f"max {out['max_ms']:.3f} ms")
+    if "prepared_p50_ms" in out:
+        text += (f"; after prepare(): p50 {out['prepared_p50_ms']:.3f} ms, p99 "
+                 f"{out['prepared_p99_ms']:.3f} ms (prepare p50 {out['prepare_p50_ms']:.3f} ms)")
+    _print(args, out, text)
 
 
 def register(sub, common) -> None:
