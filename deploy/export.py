@@ -438,7 +438,6 @@ def load_export(directory: str, expected_robot: str = ROBOT_MODEL_ID,
             raise ExportError(f"the contract's normalization {k} differs from the weights' norm/{k}")
 
     policy = ExportedPolicy(spec, tensors, policy_hash="sha256:" + w["sha256"])
-    policy.self_test_error = None
     if run_self_test:
         g = doc["golden"]
         golden = _read_tensors(directory, g.get("file", GOLDEN_FILE), str(g.get("sha256")))
@@ -499,34 +498,55 @@ def checkpoint_dir(path: str) -> str:
 def params_from_checkpoint(path: str, step: int | None = None):
     """(PolicyParams, PolicyConfig, World, source) from a training checkpoint.
 
-    Restores the saved tree without a template (orbax, no pickle) and takes the one subtree
-    {'net', 'norm'} (models.PolicyParams; e.g. TrainState.params). The PolicyConfig is read
-    from the parameter shapes; the World from the saved config's 'world' entry (defaults if
-    there is none).
+    Reads the saved tree's metadata, finds the one subtree {'net', 'norm'} (models.PolicyParams;
+    in a `ttmjx train` checkpoint: state.params) and restores only that (orbax partial restore
+    to numpy: the trajectory cache and optimizer state are not read; no pickle). The
+    PolicyConfig is the saved config's 'policy' if there is one (checked against the parameter
+    shapes), else read from the shapes; the World is the saved config's 'world' (defaults if
+    absent).
     """
+    import jax
     import orbax.checkpoint as ocp
+    from etils import epath
 
+    from models.config import PolicyConfig
     from models.normalizer import Normalizer
     from models.policy import PolicyParams
+    from training import checkpoint
     from ttmjx.config import from_dict
     directory = os.path.abspath(checkpoint_dir(path))
-    options = ocp.CheckpointManagerOptions(read_only=True, create=False, enable_async_checkpointing=False)
-    with ocp.CheckpointManager(directory, options=options, item_names=("state", "config")) as mngr:
-        saved = sorted(mngr.all_steps())
-        step = saved[-1] if step is None else int(step)
-        if step not in saved:
-            raise FileNotFoundError(f"no checkpoint step {step} in {directory!r}; saved steps: {saved}")
-        out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(),
-                                                         config=ocp.args.JsonRestore()))
-    found = _find_params(out.state)
+    saved = checkpoint.steps(directory)
+    step = saved[-1] if step is None else int(step)
+    if step not in saved:
+        raise FileNotFoundError(f"no checkpoint step {step} in {directory!r}; saved steps: {saved}")
+    config = checkpoint.restore_config(directory, step) or {}
+    state_dir = epath.Path(directory) / str(step) / "state"
+    handler = ocp.PyTreeCheckpointHandler()
+    meta = handler.metadata(state_dir)
+    found = _find_params(getattr(meta, "tree", meta))
     if not found:
         raise ExportError(f"checkpoint {directory} step {step} holds no policy parameters "
                           f"({{'net', 'norm'}} subtree)")
     found.sort(key=lambda x: (x[0].split("/")[-1] != "params", len(x[0])))
-    where, tree = found[0]
+    where, sub_meta = found[0]
+    keys = [k for k in where.split("/") if k]
+    item = sub_meta
+    for k in reversed(keys):
+        item = {k: item}
+    restore_args = jax.tree.map(lambda m: ocp.RestoreArgs(restore_type=np.ndarray), item)
+    tree = handler.restore(state_dir, args=ocp.args.PyTreeRestore(
+        item=item, restore_args=restore_args, partial_restore=True))
+    for k in keys:
+        tree = tree[k]
     norm = Normalizer(**{k: np.asarray(tree["norm"][k]) for k in Normalizer._fields})
     params = PolicyParams(tree["net"], norm)
-    pcfg = infer_policy_config(tree["net"], int(np.shape(norm.obs_mean)[-1]))
-    config = out.config or {}
+    inferred = infer_policy_config(tree["net"], int(np.shape(norm.obs_mean)[-1]))
+    pcfg = inferred
+    if isinstance(config.get("policy"), dict):
+        pcfg = PolicyConfig(**config["policy"])
+        if pcfg.kind != inferred.kind or any(getattr(pcfg, f) != getattr(inferred, f) for f in
+                                             ("hidden", "layers", "obs_size", "input_frames")):
+            raise ExportError(f"checkpoint config policy {pcfg} does not match its parameters ({inferred})")
     world = from_dict(World, config["world"]) if isinstance(config.get("world"), dict) else World()
     return params, pcfg, world, f"{directory}@{step}{where}"
+

@@ -204,6 +204,8 @@ class ExportedPolicy:
         self.policy_hash = policy_hash
         self._m = [_Member(spec, tensors, i) for i in range(self.members)]
         self._prepared = None
+        self.self_test_error: float | None = None   # set by deploy.export.load_export
+        self.contract_doc: dict | None = None       # the export's contract.json (load_export)
 
     @property
     def state_shape(self) -> tuple:

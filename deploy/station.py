@@ -226,7 +226,7 @@ class SimStation:
         self.joint_samples = collections.deque([(self.t_origin, q0.copy())], maxlen=256)
         self.ball_samples = collections.deque(maxlen=512)
         self.in_flight = False
-        self.pending: tuple | None = None                  # (t_launch, throw index)
+        self.pending: tuple | None = None                  # (t_launch, (pos, vel, spin, aim))
         self.events: ThrowEvents | None = None
         self.throw_log: list[ThrowEvents] = []
         self.physics_steps = 0
@@ -234,8 +234,8 @@ class SimStation:
         self.robot, self.tracker = SimRobot(self), SimTracker(self)
 
     def _steps_per(self, hz: float, name: str) -> int:
-        k = 1.0 / (hz * self.cfg.physics_dt)
-        if hz <= 0 or abs(k - round(k)) > 1e-6:
+        k = 1.0 / (hz * self.cfg.physics_dt) if hz > 0 else 0.5
+        if abs(k - round(k)) > 1e-6 or round(k) < 1:
             raise ValueError(f"{name}={hz} is not a whole number of {self.cfg.physics_dt}s physics steps")
         return int(round(k))
 
@@ -262,7 +262,12 @@ class SimStation:
         return q_from + w * (q_to - q_from)
 
     # ---------------------------------------------------------------------- throws
-    def _next_throw(self):
+    def prefetch(self) -> None:
+        """Sample (and so compile) the throws now rather than at the first throw_in."""
+        with self._excluded():
+            self._ensure_throws()
+
+    def _ensure_throws(self) -> None:
         if self._throws is None or self._throw_i >= self.throws_per_batch:
             import jax
 
@@ -271,6 +276,9 @@ class SimStation:
             th = sample_throws(key, self.cfg, self.throws_per_batch)
             self._throws = jax.tree.map(lambda x: np.asarray(x, np.float64), th)
             self._throw_i, self._batch = 0, self._batch + 1
+
+    def _next_throw(self):
+        self._ensure_throws()
         th, i = self._throws, self._throw_i
         self._throw_i += 1
         return th.launch_pos[i], th.launch_vel[i], th.launch_spin[i], th.aim[i]
@@ -491,7 +499,17 @@ def _nan_to_none(x):
 
 def summarize(runner: Runner, station: SimStation, episodes: list[Episode], goals: np.ndarray,
               wall_s: float) -> dict:
-    """The JSON summary of a session: goal metrics, safety, timing."""
+    """The JSON summary of a session: goal metrics (eval.metrics.goal_metrics over the episodes'
+    landings), safety and timing.
+
+    `violations`: deploy.safety.count_violations of every command against the contract's
+    filtered limits (speed_margin x the speed limits) on the times the commands reached the
+    station; all zero on a fake-time clock. With the runner's computation time charged
+    (SimClock(charge_compute=True), the CLI default) the runner's decision-to-send time (~0.1 ms
+    of Python) can make two commands arrive slightly closer than the runner reckoned, which the
+    strict rate check counts (< 1% over the margin). `violations_true_limits` and
+    `max_speed_fraction` (the fastest commanded change as a fraction of the true speed limits)
+    are what the robot experienced: must be zero and <= 1."""
     from eval.metrics import goal_metrics
     if episodes:
         landing = np.concatenate([e.traj.landing for e in episodes])
@@ -503,14 +521,23 @@ def summarize(runner: Runner, station: SimStation, episodes: list[Episode], goal
         metrics = {"within_30cm": 0.0, "within_20cm": 0.0, "mean_dist": float("nan"),
                    "hit_rate": 0.0, "goals": 0, "on_opponent": 0.0}
     t, q = station.robot.command_log()
-    v = count_violations(runner.limits, t, q,
-                         start=station.robot.true_at_send[0] if len(t) else None)
+    start = station.robot.true_at_send[0] if len(t) else None
+    v = count_violations(runner.limits, t, q, start=start)
+    # Against the robot's true speed limits (the filter uses speed_margin of them): what the
+    # robot experienced, on the times the commands reached it.
+    true_speed = np.asarray(runner.contract.max_speed, np.float64)
+    v_true = count_violations(runner.limits._replace(speed=true_speed), t, q, start=start)
+    speed_frac = 0.0
+    if len(t) > 1:
+        dt = np.minimum(np.diff(t), runner.limits.dt)[:, None]
+        speed_frac = float(np.max(np.abs(np.diff(q, axis=0)) / np.maximum(true_speed * dt, 1e-12)))
     lat = np.concatenate([e.extras["latency"] for e in episodes]) if episodes else np.zeros(0)
     lat = lat[np.isfinite(lat)] * 1e3
     sim_s = station.time - station.t_origin
     return _nan_to_none({
         "episodes": len(episodes), "goals": int(len(goals)), "metrics": metrics,
-        "violations": v._asdict(), "commands": int(len(t)),
+        "violations": v._asdict(), "violations_true_limits": v_true._asdict(),
+        "max_speed_fraction": speed_frac, "commands": int(len(t)),
         "mode": runner.mode.value, "overruns": runner.overruns, "skipped": runner.skipped,
         "faults": dict(runner.fault_counts), "ends": [e.meta["end"] for e in episodes],
         "landings": [[None if not np.isfinite(x) else float(x) for x in e.traj.landing[0]]
@@ -541,6 +568,7 @@ def run_sim(policy_dir: str, goals, out_dir: str | None = None, seed: int = 0,
     runner = Runner(station.robot, station.tracker, clock, policy, contract, config)
     if out_dir is not None:
         os.makedirs(out_dir, exist_ok=True)
+    station.prefetch()
     wall = time.perf_counter()
     episodes = play(runner, station, goals, out_dir, throw_delay_s=throw_delay_s)
     out = summarize(runner, station, episodes, goals, time.perf_counter() - wall)

@@ -100,6 +100,25 @@ def test_numpy_policy_equals_jax_over_many_steps(pcfg, steps):
     np.testing.assert_allclose(a0, want[0], rtol=0, atol=1e-5)
 
 
+def test_prepare_between_ticks_gives_bit_identical_steps():
+    """prepare(state) moves the recurrent products off the critical path without changing a bit;
+    a prepared result is used only for the very state it was computed from."""
+    params = random_params(LSTM, seed=7, members=2)
+    pol = numpy_policy(LSTM, params)
+    frames, _ = observations(30, 1, seed=5)
+    s_plain, s_prep = pol.reset(), pol.reset()
+    for t in range(30):
+        s_plain, a_plain = pol.step(s_plain, frames[t], None)
+        pol.prepare(s_prep)
+        s_prep, a_prep = pol.step(s_prep, frames[t], None)
+        np.testing.assert_array_equal(a_plain, a_prep)
+        np.testing.assert_array_equal(s_plain, s_prep)
+    pol.prepare(pol.reset())                     # prepared for another state: ignored
+    _, a = pol.step(s_plain, frames[0], None)
+    _, want = pol.step(s_plain, frames[0], None)
+    np.testing.assert_array_equal(a, want)
+
+
 def test_numpy_policy_rejects_wrong_inputs():
     pol = numpy_policy(LSTM, random_params(LSTM))
     with pytest.raises(ValueError, match="frame has shape"):
@@ -284,17 +303,23 @@ def test_load_needs_numpy_only(ensemble_export):
 
 
 def test_export_from_a_checkpoint_through_the_cli(tmp_path):
-    """ttmjx export CHECKPOINT: params found in a saved TrainState-like tree, PolicyConfig read
-    from the shapes, the world from the saved config."""
+    """ttmjx export RUN: only the policy parameters are restored from a trainer-like checkpoint
+    (train state + a trajectory cache), the PolicyConfig and World from its saved config."""
+    import dataclasses
+
     from training import checkpoint
+    from training.config import TrainConfig
+    from training.update import init_train_state
     from ttmjx.cli import main
     from ttmjx.config import to_dict
     params = random_params(MLP, seed=8, members=2)
+    state = init_train_state(jax.random.key(0), MLP, TrainConfig(members=2), member(params, 0).norm)._replace(params=params)
     world = World(frame_stack=4)
     checkpoint.save(str(tmp_path / "run" / "checkpoints"), 3,
-                    {"params": params, "step": jnp.int32(3)}, {"world": to_dict(world)})
+                    {"state": state, "cache": {"obs": jnp.zeros((64, 20, 13))}, "key": jnp.zeros(2, jnp.uint32)},
+                    {"world": to_dict(world), "policy": dataclasses.asdict(MLP)})
     p2, pcfg, w2, source = params_from_checkpoint(str(tmp_path / "run"))
-    assert pcfg == MLP and w2 == world and source.endswith("@3/params")
+    assert pcfg == MLP and w2 == world and source.endswith("@3/state/params")
     main(["export", str(tmp_path / "run"), "--out", str(tmp_path / "exp"), "--member", "1",
           "--control-hz", "20"])
     pol, contract = load_export(str(tmp_path / "exp"))
@@ -308,3 +333,4 @@ def test_latency_benchmark_runs_on_one_thread():
     res = benchmark("lstm", hidden=64, layers=2, steps=50, warmup=5)
     assert res["threads"] == 1 and res["threads_env"]["OMP_NUM_THREADS"] == "1"
     assert 0 < res["p50_ms"] <= res["p99_ms"] <= res["max_ms"]
+    assert 0 < res["prepared_p50_ms"] <= res["prepared_p99_ms"] and res["prepare_p50_ms"] > 0

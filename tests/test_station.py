@@ -188,7 +188,10 @@ def test_ttmjx_robot_run_cli(tiny_export, tmp_path, capsys):
     main(["robot", "run", "--policy", tiny_export, "--station", "sim", "--goals", "0.7,0.3",
           "--n", "2", "--out", str(tmp_path / "logs"), "--seed", "3", "--json"])
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert out["episodes"] == 2 and out["violations"] == NO_VIOLATIONS._asdict()
+    # Compute time is charged by default: the strict rate check may see the runner's
+    # decision-to-send jitter; against the robot's true limits nothing may be exceeded.
+    assert out["episodes"] == 2 and out["violations_true_limits"] == NO_VIOLATIONS._asdict()
+    assert 0 < out["max_speed_fraction"] <= 1.0
     assert {"within_30cm", "within_20cm", "mean_dist", "hit_rate"} <= set(out["metrics"])
     assert out["latency_ms"]["p99"] < 1000 / 20          # compute time is charged by default
     assert sorted(os.listdir(tmp_path / "logs"))[0] == "episode_0000.deploy.npz"

@@ -101,7 +101,7 @@ def paper_sim() -> RunConfig:
         world=World(ball_velocity_obs=True).with_throws("any"),
         policy=PolicyConfig(kind="lstm", hidden=1024, layers=2, obs_size=16),
         train=TrainConfig(window=96, batch_size=64, learning_rate=1e-4, members=1, capacity=131_072),
-        demos=3600, pretrain_steps=5000, steps_between_ssp=100, episodes_per_ssp=1000,
+        demos=3600, pretrain_steps=2000, steps_between_ssp=50, episodes_per_ssp=1000,
         total_trajectories=120_000, eval_every=10_000, checkpoint_every=20, run_dir="runs/paper-sim")
 
 

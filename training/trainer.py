@@ -84,7 +84,8 @@ def load_demos(cfg: RunConfig, progress: bool) -> record.Trajectories | None:
     path = os.path.join(cfg.run_dir, "demos")
     if os.path.exists(os.path.join(path, "trajectories.npz")):
         return record.load(path)[0]
-    traj = demos.collect(cfg.world, cfg.demo_source, cfg.demos, cfg.seed + 10_000, "c", progress=progress)
+    backend = resolve_backend(cfg.backend)
+    traj = demos.collect(cfg.world, cfg.demo_source, cfg.demos, cfg.seed + 10_000, backend, progress=progress)
     record.save(path, traj, {"source": cfg.demo_source, "distribution": cfg.world.throws.name,
                              "seed": cfg.seed + 10_000, **demos.summary(traj, cfg.world)})
     return traj

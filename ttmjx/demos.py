@@ -50,13 +50,16 @@ def source_policy(cfg: World, source: str, params_dir: str | None = None):
     raise ValueError(f"unknown demonstration source {source!r}; expected one of {SOURCES}")
 
 
-def collect(cfg: World, source: str, n: int, seed: int, backend: str = "c", chunk: int = 500,
+def collect(cfg: World, source: str, n: int, seed: int, backend: str = "c", chunk: int | None = None,
             progress: bool = False, params_dir: str | None = None) -> record.Trajectories:
     """n demonstrations in chunks on `backend`; [n, T, ...] record."""
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
     policy, params = source_policy(cfg, source, params_dir)
     be = backends.Backend(cfg, backend)
+    # MJX wants large batches (thousands of throws in flight); the C backend smaller chunks
+    # so progress shows and memory stays small.
+    chunk = chunk or (16384 if backend == "mjx" else 500)
     key = jax.random.PRNGKey(seed)
     parts = []
     bar = _bar(n, progress)

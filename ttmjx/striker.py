@@ -52,19 +52,32 @@ _LINK_OFFSETS = ((0.0, 0.0, 0.29), (0.0, 0.0, 0.27), (0.0, 0.0, 0.07), (0.302, 0
 
 
 @dataclasses.dataclass(frozen=True)
-class BallModel:
-    """The ball's contacts as the striker models them (measured on the MuJoCo scene at 1 ms).
+class Surface:
+    """A bounce as the striker models it, in the frame of the surface (unit normal n toward the
+    ball), with the ball's velocity v and spin w relative to it (`bounce`):
 
-    A bounce reverses the normal relative velocity times the restitution, and removes `grip` of
-    the slip velocity of the ball's contact point (a short, stick-limited friction impulse),
-    which spins the (hollow) ball: dw = -(3 / 2r) n x dv_t. The paddle's restitution varies
-    0.72-0.97 with where in a physics step the contact starts; the value here is what
-    strikes measured (0.76 +- 0.02).
-    """
-    table_restitution: float = 0.89
-    table_grip: float = 0.08
-    paddle_restitution: float = 0.76
-    paddle_grip: float = 0.13
+        v_n' = -restitution v_n
+        dv_t = -(grip + grip_per_speed |v_n|) v_t + spin_grip r (w x n)
+        dw   = -spin_gain (3 / 2r) n x dv_t          (the friction impulse spins the hollow ball)
+
+    Fitted by `measure_surface` on the MuJoCo scene (oblique impacts over arrival phases)."""
+    restitution: float
+    grip: float
+    grip_per_speed: float
+    spin_grip: float
+    spin_gain: float
+
+
+# Measured on the default World by `measure_surface` (tests/test_striker.py re-measures them).
+TABLE = Surface(restitution=0.893, grip=0.078, grip_per_speed=0.0036, spin_grip=0.082, spin_gain=0.85)
+PADDLE = Surface(restitution=0.760, grip=0.164, grip_per_speed=0.0060, spin_grip=0.168, spin_gain=0.87)
+
+
+@dataclasses.dataclass(frozen=True)
+class BallModel:
+    """The ball's contacts as the striker models them."""
+    table: Surface = TABLE
+    paddle: Surface = PADDLE
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,17 +85,22 @@ class StrikerConfig:
     """The striker's plan and its per-episode randomization (uniform ranges)."""
     # Where the returned ball should land (opponent's half, margins from the edges and the net).
     target_x: tuple = (0.25, 1.17)
-    target_y: tuple = (-0.6, 0.6)
+    target_y: tuple = (-0.62, 0.62)
     # The return's ball-centre height above the net tape where it crosses the net (drag-free plan).
     net_clearance: tuple = (0.10, 0.40)
     min_clearance: float = 0.05     # lowered down to this when the episode's time runs short
+    return_reserve_s: float = 0.55  # a slow ball is struck this long before the episode ends
+    hit_min_height: float = 0.1     # a falling ball is struck before it drops this close to the
+                                    # table top's height
     # The hitting plane: the ball is struck, after its bounce, where it crosses x = hit_x.
     hit_x: tuple = (-1.62, -1.42)
-    # Blade roll: the angle of the extension (link6 x) in the blade plane from "pointing down"
-    # (positive toward +y); the hit's y adds roll_per_y (deg/m) so that the blade reaches out
-    # sideways toward a wide ball, the result clipped to roll_deg.
-    roll_deg: tuple = (-80.0, 80.0)
-    roll_per_y: float = 90.0
+    # Blade roll: the angle of the extension (link6 x) in the blade plane from "pointing down",
+    # positive toward +y. Its size is drawn per episode; its sign too, except for a ball wider
+    # than roll_side_y, where the blade reaches out toward the ball's side (decided at launch).
+    # A high hit raises the size to keep the wrist (the blade hangs below it) below wrist_max_z.
+    roll_deg: tuple = (0.0, 100.0)
+    roll_side_y: float = 0.25
+    wrist_max_z: float = 1.2
     # Posture: the gantry carriage this far behind the hit, and following this fraction of its y.
     reach_x: float = 0.45
     gantry_follow_y: float = 0.7
@@ -108,6 +126,8 @@ class StrikerConfig:
     newton_iters: int = 2
     ik_iters: int = 3
     ik_init_iters: int = 30
+    ik_restart_err: float = 0.02    # m
+    ik_restart_steps: int = 8
     model: BallModel = BallModel()
 
 
@@ -117,7 +137,9 @@ class StrikerState(NamedTuple):
     target: jax.Array       # [2] landing target (x, y)
     clearance: jax.Array    # () net clearance of the return (m)
     hit_x: jax.Array        # () hitting plane
-    roll: jax.Array         # () blade roll (rad)
+    roll: jax.Array         # () blade roll size (rad)
+    roll_sign: jax.Array    # () +1 / -1
+    side_set: jax.Array     # bool: roll_sign has been decided from a predicted hit
     face: jax.Array         # () +1 / -1: which side of the blade hits
     strike_s: jax.Array     # () strike duration (s)
     offset: jax.Array       # [8] command offsets
@@ -127,6 +149,8 @@ class StrikerState(NamedTuple):
     p_hit: jax.Array        # [3] ball centre at the hit
     theta: jax.Array        # [3] stroke: face normal yaw, pitch (rad), blade speed along it (m/s)
     q_hit: jax.Array        # [8] joints at the hit
+    q_seed: jax.Array       # [8] the IK's next warm start
+    ik_age: jax.Array       # int32: steps since the IK last restarted from the posture
     qd_hit: jax.Array       # [8] joint velocities at the hit
     # reference and command
     q_ref: jax.Array        # [8]
@@ -240,17 +264,83 @@ def _flight_step(cfg: World, p, v, w, dt):
     return p + dt * vm, v + dt * a2, w + dt * _spin_decay(cfg, w)
 
 
-def bounce(v, w, normal, surface_vel, restitution, grip, radius):
-    """Ball velocity and spin after a bounce on a surface with unit normal (pointing toward the
-    ball) moving at surface_vel [3] (BallModel)."""
+def bounce(surf: Surface, v, w, normal, surface_vel, radius):
+    """Ball velocity [3] and spin [3] after a bounce (`Surface`) on a surface with unit normal
+    [3] (pointing toward the ball) moving at surface_vel [3]."""
     rel = v - surface_vel
-    rel_n = jnp.dot(rel, normal) * normal
-    rel_t = rel - rel_n
-    slip = rel_t - radius * jnp.cross(w, normal)
-    dv_t = -grip * slip
-    v_out = surface_vel - restitution * rel_n + rel_t + dv_t
-    w_out = w - (1.5 / radius) * jnp.cross(normal, dv_t)
+    vn = jnp.dot(rel, normal)
+    rel_t = rel - vn * normal
+    dv_t = (-(surf.grip + surf.grip_per_speed * jnp.abs(vn)) * rel_t
+            + surf.spin_grip * radius * jnp.cross(w, normal))
+    v_out = surface_vel - surf.restitution * vn * normal + rel_t + dv_t
+    w_out = w - surf.spin_gain * (1.5 / radius) * jnp.cross(normal, dv_t)
     return v_out, w_out
+
+
+def measure_surface(cfg: World, surface: str, phases: int = 6) -> Surface:
+    """Fit a `Surface` to oblique impacts on the MuJoCo scene (C, no air, no gravity): normal
+    speeds 2-8 m/s, tangential 0-3 m/s, spin 0 / +-30 rad/s, each at `phases` sub-step arrival
+    offsets. surface: "table" (its top) or "paddle" (the blade held facing +x)."""
+    import mujoco
+
+    from ttmjx import scene
+    if surface not in ("table", "paddle"):
+        raise ValueError(f"surface must be 'table' or 'paddle', got {surface!r}")
+    m = scene.model(cfg, fluid=False)
+    m_opt_gravity = m.opt.gravity.copy()
+    ids = scene.ids(m)
+    d = mujoco.MjData(m)
+    r = cfg.ball.radius
+    q_blade = np.array([0, 0, 0, 0, 0, 0, 0.5 * np.pi, 0.0])
+    rows = []
+    try:
+        m.opt.gravity[:] = 0.0
+        for vn in (2.0, 4.0, 6.0, 8.0):
+            for vt in (0.0, 1.0, 3.0):
+                for spin in (0.0, -30.0, 30.0):
+                    for ph in range(phases):
+                        mujoco.mj_resetData(m, d)
+                        d.qpos[ids.robot_qpos] = q_blade
+                        d.ctrl[:] = q_blade
+                        mujoco.mj_forward(m, d)
+                        if surface == "paddle":
+                            n = d.site_xmat[ids.paddle_site].reshape(3, 3)[:, 2].copy()
+                            face = d.site_xpos[ids.paddle_site] + n * (r + cfg.robot.blade_thickness / 2)
+                        else:
+                            n = np.array([0.0, 0.0, 1.0])
+                            face = np.array([-0.5, 0.0, cfg.table.top_z + r])
+                        t = np.cross(n, [0.0, 1.0, 0.0])           # tangent in the x-z plane
+                        v = -vn * n + vt * t
+                        w = spin * np.array([0.0, 1.0, 0.0])
+                        start = face + n * vn * 1e-3 * (ph / phases) - v * 0.005
+                        d.qpos[ids.ball_qpos:ids.ball_qpos + 7] = np.r_[start, 1.0, 0.0, 0.0, 0.0]
+                        d.qvel[ids.ball_qvel:ids.ball_qvel + 6] = np.r_[v, w]
+                        for _ in range(30):
+                            mujoco.mj_step(m, d)
+                        v1 = d.qvel[ids.ball_qvel:ids.ball_qvel + 3].copy()
+                        w1 = np.zeros(3)
+                        mujoco.mju_rotVecQuat(w1, d.qvel[ids.ball_qvel + 3:ids.ball_qvel + 6],
+                                              d.qpos[ids.ball_qpos + 3:ids.ball_qpos + 7])
+                        rows.append((n, v, w, v1, w1))
+    finally:
+        m.opt.gravity[:] = m_opt_gravity
+    e = np.mean([np.dot(v1, n) / -np.dot(v, n) for n, v, w, v1, w1 in rows])
+    # dv_t = -a v_t - b |v_n| v_t + c r (w x n): least squares over the tangential components
+    feats, targ, gain_x, gain_y = [], [], [], []
+    for n, v, w, v1, w1 in rows:
+        vn_ = np.dot(v, n)
+        vt_ = v - vn_ * n
+        dvt = (v1 - np.dot(v1, n) * n) - vt_
+        for k in range(3):
+            feats.append([-vt_[k], -abs(vn_) * vt_[k], r * np.cross(w, n)[k]])
+            targ.append(dvt[k])
+        model_dw = -(1.5 / r) * np.cross(n, dvt)
+        gain_x.extend(model_dw), gain_y.extend(w1 - w)
+    a, b, c = np.linalg.lstsq(np.array(feats), np.array(targ), rcond=None)[0]
+    gx, gy = np.array(gain_x), np.array(gain_y)
+    k = float(np.dot(gx, gy) / max(np.dot(gx, gx), 1e-12))
+    return Surface(restitution=float(e), grip=float(a), grip_per_speed=float(b), spin_grip=float(c),
+                   spin_gain=k)
 
 
 def predict(cfg: World, scfg: StrikerConfig, p, v, w, bounced):
@@ -266,7 +356,7 @@ def predict(cfg: World, scfg: StrikerConfig, p, v, w, bounced):
         p1, v1, w1 = _flight_step(cfg, p, v, w, dt)
         on_table = (jnp.abs(p1[0]) <= tab.half_length) & (jnp.abs(p1[1]) <= tab.half_width)
         hit = (p1[2] < h) & (v1[2] < 0.0) & on_table
-        vb, wb = bounce(v1, w1, up, jnp.zeros(3), mdl.table_restitution, mdl.table_grip, b.radius)
+        vb, wb = bounce(mdl.table, v1, w1, up, jnp.zeros(3), b.radius)
         p1 = jnp.where(hit, p1.at[2].set(2.0 * h - p1[2]), p1)
         v1, w1 = jnp.where(hit, vb, v1), jnp.where(hit, wb, w1)
         bounced = bounced | (hit & (p1[0] < 0.0))
@@ -324,7 +414,7 @@ def stroke_guess(cfg: World, scfg: StrikerConfig, p_hit, v_in, target, duration)
                              ((z_land - p_hit[2]) / duration + 0.5 * GRAVITY * duration)[None]])
     n = v_out - v_in
     n = n / jnp.linalg.norm(n)
-    e = scfg.model.paddle_restitution
+    e = scfg.model.paddle.restitution
     s = (jnp.dot(v_out, n) + e * jnp.dot(v_in, n)) / (1.0 + e)
     return jnp.stack([jnp.arctan2(n[1], n[0]), jnp.arcsin(jnp.clip(n[2], -1.0, 1.0)), s])
 
@@ -336,8 +426,7 @@ def solve_stroke(cfg: World, scfg: StrikerConfig, theta, p_hit, v_in, w_in, targ
 
     def resid(th):
         n = _direction(th[0], th[1])
-        v_out, w_out = bounce(v_in, w_in, n, th[2] * n, mdl.paddle_restitution, mdl.paddle_grip,
-                              cfg.ball.radius)
+        v_out, w_out = bounce(mdl.paddle, v_in, w_in, n, th[2] * n, cfg.ball.radius)
         return fly_for(cfg, p_hit, v_out, w_out, duration, scfg.return_steps) - goal
 
     def step(_, th):
@@ -408,16 +497,21 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
         j6 = jnp.where(face > 0, 0.0, math.pi)
         return jnp.stack([gx, gy, 0.0, 0.2, -0.4, roll, 0.5 * math.pi - 0.3, j6])
 
-    def roll_at(roll, p_hit):
-        deg = math.pi / 180.0
-        return jnp.clip(roll + scfg.roll_per_y * deg * (p_hit[1] - r.base_y),
-                        scfg.roll_deg[0] * deg, scfg.roll_deg[1] * deg)
+    def roll_at(roll, sign, p_hit):
+        """The blade roll for a hit: at least what keeps the wrist low enough (the extension
+        hanging below the wrist by `hang`)."""
+        hang = r.extension + r.blade_half_size[0] + _LINK_OFFSETS[4][0]
+        floor = jnp.arccos(jnp.clip((scfg.wrist_max_z - p_hit[2]) / hang, 0.0, 1.0))
+        return sign * jnp.maximum(roll, floor)
 
     def flight_time(p_hit, t_hit, target, clearance):
         """The return's flight time: from its net clearance, but landing within the episode."""
-        t_left = cfg.episode_s - t_hit - 2 * dt
+        t_left = cfg.episode_s - t_hit - 0.1
         t_min = return_time(cfg, p_hit, target, jnp.asarray(scfg.min_clearance))
         return jnp.maximum(jnp.minimum(return_time(cfg, p_hit, target, clearance), t_left), t_min)
+
+    # A slow ball is struck where it is at this time, so that its return lands in the episode.
+    t_latest = cfg.episode_s - scfg.return_reserve_s
 
     def plan_hit(carry: StrikerState, p, v, w, t_now):
         """(t_hit, p_hit, v_in, w_in, found) from the predicted flight."""
@@ -426,21 +520,32 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
         vs = jnp.concatenate([v[None], vs])
         ws = jnp.concatenate([w[None], ws])
         bs = jnp.concatenate([carry.bounced[None], bs])
-        cross = bs & (ps[:, 0] < carry.hit_x)
+        times = t_now + scfg.predict_dt * jnp.arange(ps.shape[0])
+        # after the bounce: at the hitting plane, or before the ball falls too low, or late
+        z_min = cfg.table.top_z + scfg.hit_min_height
+        past_x, past_t = ps[:, 0] < carry.hit_x, times > t_latest
+        past_z = (ps[:, 2] < z_min) & (vs[:, 2] < 0.0)
+        cross = bs & (past_x | past_t | past_z)
         k = jnp.argmax(cross)
         found = jnp.any(cross) & (k > 0)
         k = jnp.maximum(k, 1)
-        x0, x1 = ps[k - 1, 0], ps[k, 0]
-        f = jnp.clip((x0 - carry.hit_x) / jnp.where(x0 == x1, 1.0, x0 - x1), 0.0, 1.0)
+
+        def frac(c, a0, a1, level):
+            return jnp.where(c, jnp.clip((a0 - level) / jnp.where(a0 == a1, 1.0, a0 - a1), 0.0, 1.0), 1.0)
+
+        f = jnp.minimum(jnp.minimum(frac(past_x[k], ps[k - 1, 0], ps[k, 0], carry.hit_x),
+                                    frac(past_t[k], times[k - 1], times[k], t_latest)),
+                        frac(past_z[k], ps[k - 1, 2], ps[k, 2], z_min))
         lerp = lambda a: a[k - 1] + f * (a[k] - a[k - 1])
         t_hit = t_now + (k - 1 + f) * scfg.predict_dt
         return t_hit, lerp(ps), lerp(vs), lerp(ws), found
 
     def init(params, key):
-        keys = jax.random.split(key, 10)
+        keys = jax.random.split(key, 11)
         target = jnp.stack([_uniform(keys[0], scfg.target_x), _uniform(keys[1], scfg.target_y)])
         roll = _uniform(keys[2], scfg.roll_deg) * (math.pi / 180.0)
-        face = jnp.where(jax.random.bernoulli(keys[3]), 1.0, -1.0)
+        roll_sign = jnp.where(jax.random.bernoulli(keys[3]), 1.0, -1.0)
+        face = jnp.where(jax.random.bernoulli(keys[10]), 1.0, -1.0)
         chosen = jnp.zeros(8).at[jax.random.permutation(keys[4], 8)[:scfg.perturb_joints]].set(1.0)
         offset = chosen * jax.random.uniform(keys[5], (8,), minval=-1.0, maxval=1.0) * jnp.array(scfg.perturb)
         pref_off = chosen * jax.random.uniform(keys[6], (8,), minval=-1.0, maxval=1.0) * jnp.array(scfg.posture)
@@ -451,17 +556,18 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
         duration = return_time(cfg, p_nom, target, clearance)
         theta = stroke_guess(cfg, scfg, p_nom, v_nom, target, duration)
         normal = _direction(theta[0], theta[1])
-        z_t, x_t = blade_frame(normal, roll, face)
-        q_pref = posture(p_nom, roll, face) + pref_off
+        roll_nom = roll_at(roll, roll_sign, p_nom)
+        z_t, x_t = blade_frame(normal, roll_nom, face)
+        q_pref = posture(p_nom, roll_nom, face) + pref_off
         q_hit = solve_ik(cfg, q_pref, p_nom - contact_offset * normal, z_t, x_t, q_pref,
                          scfg.ik_init_iters)
         z8 = jnp.zeros(8)
         return StrikerState(
-            target=target, clearance=clearance, hit_x=hit_x, roll=roll, face=face,
+            target=target, clearance=clearance, hit_x=hit_x, roll=roll, roll_sign=roll_sign, face=face,
             strike_s=_uniform(keys[9], scfg.strike_s), offset=offset, posture_offset=pref_off,
-            t_hit=jnp.asarray(0.65), p_hit=p_nom, theta=theta, q_hit=q_hit, qd_hit=z8,
+            t_hit=jnp.asarray(0.65), p_hit=p_nom, theta=theta, q_hit=q_hit, q_seed=q_hit, ik_age=jnp.int32(0), qd_hit=z8,
             q_ref=z8, v_ref=z8, u_prev=z8, v_prev=jnp.zeros(3), spin=jnp.zeros(3),
-            bounced=jnp.array(False), struck=jnp.array(False))
+            bounced=jnp.array(False), struck=jnp.array(False), side_set=jnp.array(False))
 
     def apply(params, carry: StrikerState, obs: Obs, key):
         tab = cfg.table
@@ -478,8 +584,8 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
         # -- ball tracking: own-half bounce, spin, the returning ball
         bounce_now = (v_prev[2] < 0.0) & (v[2] > 0.0) & (p[0] < 0.0) & (p[2] < tab.top_z + 0.2)
         spin_est, resid = estimate_spin(cfg, v_prev, v, dt)
-        _, spin_bounce = bounce(v_prev, carry.spin, jnp.array([0.0, 0.0, 1.0]), jnp.zeros(3),
-                                scfg.model.table_restitution, scfg.model.table_grip, b.radius)
+        _, spin_bounce = bounce(scfg.model.table, v_prev, carry.spin, jnp.array([0.0, 0.0, 1.0]),
+                                jnp.zeros(3), b.radius)
         free = ~first & ~bounce_now & (jnp.linalg.norm(resid) < 20.0)
         spin = jnp.where(bounce_now, spin_bounce, jnp.where(free, spin_est, carry.spin))
         bounced = carry.bounced | bounce_now
@@ -494,13 +600,26 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
                              carry.target, duration)
         theta = jnp.where(jnp.all(jnp.isfinite(theta)), theta, guess)
         normal = _direction(theta[0], theta[1])
-        roll = roll_at(carry.roll, p_hit)
+        # the roll's side: toward a wide ball, decided on the first prediction of a hit
+        side = jnp.where(jnp.abs(p_hit[1] - r.base_y) > scfg.roll_side_y, jnp.sign(p_hit[1] - r.base_y),
+                         carry.roll_sign)
+        roll_sign = jnp.where(found & ~carry.side_set, side, carry.roll_sign)
+        side_set = carry.side_set | found
+        roll = roll_at(carry.roll, roll_sign, p_hit)
         z_t, x_t = blade_frame(normal, roll, carry.face)
         q_pref = posture(p_hit, roll, carry.face) + carry.posture_offset
-        q_hit = solve_ik(cfg, carry.q_hit, p_hit - contact_offset * normal, z_t, x_t, q_pref,
-                         scfg.ik_iters)
+        blade = p_hit - contact_offset * normal
+        q_hit = solve_ik(cfg, carry.q_seed, blade, z_t, x_t, q_pref, scfg.ik_iters)
+        # a warm start stuck away from the target restarts from the posture (at most every
+        # ik_restart_steps, the iterations a restart needs to converge)
+        # (not close to the hit, where the jump would spoil the swing)
         qd_hit = blade_joint_velocity(cfg, q_hit, theta[2] * normal, scfg.hit_speed_frac)
-        update = found & ~struck
+        # no update from a ball in contact with the table (its velocity is mid-bounce)
+        update = found & ~struck & ~bounce_now & (p[2] > tab.top_z + b.radius)
+        stuck = ((jnp.linalg.norm(forward_kinematics(cfg, q_hit)[0] - blade) > scfg.ik_restart_err)
+                 & (carry.ik_age >= scfg.ik_restart_steps) & update & (t_hit - t_now > 0.2))
+        q_seed = jnp.where(update, jnp.where(stuck, q_pref, q_hit), carry.q_seed)
+        ik_age = jnp.where(stuck, 0, carry.ik_age + 1)
         keep = lambda new, old: jnp.where(update, new, old)
         t_hit, p_hit, theta = keep(t_hit, carry.t_hit), keep(p_hit, carry.p_hit), keep(theta, carry.theta)
         q_hit, qd_hit = keep(q_hit, carry.q_hit), keep(qd_hit, carry.qd_hit)
@@ -538,7 +657,8 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
 
         carry = carry._replace(t_hit=t_hit, p_hit=p_hit, theta=theta, q_hit=q_hit, qd_hit=qd_hit,
                                q_ref=q_new, v_ref=v_new, u_prev=u, v_prev=v, spin=spin,
-                               bounced=bounced, struck=struck)
+                               bounced=bounced, struck=struck, roll_sign=roll_sign,
+                               side_set=side_set, q_seed=q_seed, ik_age=ik_age)
         return carry, u
 
     return backends.Policy(init=init, apply=apply)
