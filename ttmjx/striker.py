@@ -32,6 +32,7 @@ and vmapped, on the MuJoCo C backend.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from typing import NamedTuple
 
@@ -108,11 +109,9 @@ class StrikerConfig:
     strike_s: tuple = (0.12, 0.2)
     hold_s: float = 0.02          # the hit velocity is held this long before and after the hit
     follow_s: float = 0.08        # then decays with this time constant
-    # Extra command lead over the servo's velocity feed-forward (coupling and the real inertia
-    # lag the ideal servo a little).
-    servo_lead_s: float = 0.0
     # Joint speeds the plan may use, as a fraction of the speed limits.
     hit_speed_frac: float = 0.7
+    blade_turn_cost: float = 0.03     # (rad/s)^-2, see blade_joint_velocity
     approach_speed_frac: float = 0.9
     # "Perturb 4 of the 8 joints": constant command offsets (m, rad) on `perturb_joints` random
     # joints, and the same joints' posture preference offsets (null-space only).
@@ -231,14 +230,21 @@ def solve_ik(cfg: World, q, pos, normal, ext, q_pref, iters: int):
     return jax.lax.fori_loop(0, iters, step, q)
 
 
-def blade_joint_velocity(cfg: World, q, vel, speed_frac: float):
+def blade_joint_velocity(cfg: World, q, vel, speed_frac: float, turn_cost: float = 0.0):
     """Joint velocities [8] moving the blade centre at vel [3] with the least speed relative to
-    the limits (the gantry counted 3x), scaled down as a whole to stay within speed_frac of them."""
+    the limits (the gantry counted 3x) plus turn_cost times the blade's squared angular velocity
+    ((rad/s)^-2: a turning blade makes the face normal depend on the exact contact time), scaled
+    down as a whole to stay within speed_frac of the limits."""
     vmax = jnp.array(cfg.robot.max_speed)
-    w = (vmax / jnp.array([3.0, 3.0, 1, 1, 1, 1, 1, 1])) ** 2      # inverse cost
-    jac = jax.jacfwd(lambda qq: forward_kinematics(cfg, qq)[0])(q)   # [3, 8]
-    jw = jac * w[None, :]
-    qd = jw.T @ jnp.linalg.solve(jw @ jac.T + 1e-4 * jnp.eye(3), vel)
+    cost = (jnp.array([3.0, 3.0, 1, 1, 1, 1, 1, 1]) / vmax) ** 2
+    jp, jr = jax.jacfwd(lambda qq: forward_kinematics(cfg, qq))(q)  # [3, 8], [3, 3, 8]
+    rot = forward_kinematics(cfg, q)[1]
+    # angular velocity in the world frame from d(rot)/dq: skew(w) = dR R^T
+    skew = jnp.einsum("ijk,lj->ilk", jr, rot)                        # [3, 3, 8]
+    jw = jnp.stack([skew[2, 1], skew[0, 2], skew[1, 0]])             # [3, 8]
+    a = jnp.diag(cost) + turn_cost * jw.T @ jw
+    ainv_jt = jnp.linalg.solve(a, jp.T)                              # [8, 3]
+    qd = ainv_jt @ jnp.linalg.solve(jp @ ainv_jt + 1e-6 * jnp.eye(3), vel)
     scale = jnp.minimum(1.0, jnp.min(speed_frac * vmax / jnp.maximum(jnp.abs(qd), 1e-9)))
     return qd * scale
 
@@ -286,44 +292,36 @@ def measure_surface(cfg: World, surface: str, phases: int = 6) -> Surface:
     from ttmjx import scene
     if surface not in ("table", "paddle"):
         raise ValueError(f"surface must be 'table' or 'paddle', got {surface!r}")
-    m = scene.model(cfg, fluid=False)
-    m_opt_gravity = m.opt.gravity.copy()
+    m = mujoco.MjModel.from_xml_string(scene.mjcf(cfg, fluid=False))   # a copy: gravity goes off
+    m.opt.gravity[:] = 0.0
     ids = scene.ids(m)
     d = mujoco.MjData(m)
     r = cfg.ball.radius
     q_blade = np.array([0, 0, 0, 0, 0, 0, 0.5 * np.pi, 0.0])
     rows = []
-    try:
-        m.opt.gravity[:] = 0.0
-        for vn in (2.0, 4.0, 6.0, 8.0):
-            for vt in (0.0, 1.0, 3.0):
-                for spin in (0.0, -30.0, 30.0):
-                    for ph in range(phases):
-                        mujoco.mj_resetData(m, d)
-                        d.qpos[ids.robot_qpos] = q_blade
-                        d.ctrl[:] = q_blade
-                        mujoco.mj_forward(m, d)
-                        if surface == "paddle":
-                            n = d.site_xmat[ids.paddle_site].reshape(3, 3)[:, 2].copy()
-                            face = d.site_xpos[ids.paddle_site] + n * (r + cfg.robot.blade_thickness / 2)
-                        else:
-                            n = np.array([0.0, 0.0, 1.0])
-                            face = np.array([-0.5, 0.0, cfg.table.top_z + r])
-                        t = np.cross(n, [0.0, 1.0, 0.0])           # tangent in the x-z plane
-                        v = -vn * n + vt * t
-                        w = spin * np.array([0.0, 1.0, 0.0])
-                        start = face + n * vn * 1e-3 * (ph / phases) - v * 0.005
-                        d.qpos[ids.ball_qpos:ids.ball_qpos + 7] = np.r_[start, 1.0, 0.0, 0.0, 0.0]
-                        d.qvel[ids.ball_qvel:ids.ball_qvel + 6] = np.r_[v, w]
-                        for _ in range(30):
-                            mujoco.mj_step(m, d)
-                        v1 = d.qvel[ids.ball_qvel:ids.ball_qvel + 3].copy()
-                        w1 = np.zeros(3)
-                        mujoco.mju_rotVecQuat(w1, d.qvel[ids.ball_qvel + 3:ids.ball_qvel + 6],
-                                              d.qpos[ids.ball_qpos + 3:ids.ball_qpos + 7])
-                        rows.append((n, v, w, v1, w1))
-    finally:
-        m.opt.gravity[:] = m_opt_gravity
+    for vn, vt, spin, ph in itertools.product((2.0, 4.0, 6.0, 8.0), (0.0, 1.0, 3.0), (0.0, -30.0, 30.0),
+                                              range(phases)):
+        mujoco.mj_resetData(m, d)
+        d.qpos[ids.robot_qpos] = q_blade
+        d.ctrl[:] = q_blade
+        mujoco.mj_forward(m, d)
+        if surface == "paddle":
+            n = d.site_xmat[ids.paddle_site].reshape(3, 3)[:, 2].copy()
+            face = d.site_xpos[ids.paddle_site] + n * (r + cfg.robot.blade_thickness / 2)
+        else:
+            n = np.array([0.0, 0.0, 1.0])
+            face = np.array([-0.5, 0.0, cfg.table.top_z + r])
+        v = -vn * n + vt * np.cross(n, [0.0, 1.0, 0.0])        # tangent in the x-z plane
+        w = spin * np.array([0.0, 1.0, 0.0])
+        start = face + n * vn * 1e-3 * (ph / phases) - v * 0.005
+        d.qpos[ids.ball_qpos:ids.ball_qpos + 7] = np.r_[start, 1.0, 0.0, 0.0, 0.0]
+        d.qvel[ids.ball_qvel:ids.ball_qvel + 6] = np.r_[v, w]
+        for _ in range(30):
+            mujoco.mj_step(m, d)
+        w1 = np.zeros(3)
+        mujoco.mju_rotVecQuat(w1, d.qvel[ids.ball_qvel + 3:ids.ball_qvel + 6],
+                              d.qpos[ids.ball_qpos + 3:ids.ball_qpos + 7])
+        rows.append((n, v, w, d.qvel[ids.ball_qvel:ids.ball_qvel + 3].copy(), w1))
     e = np.mean([np.dot(v1, n) / -np.dot(v, n) for n, v, w, v1, w1 in rows])
     # dv_t = -a v_t - b |v_n| v_t + c r (w x n): least squares over the tangential components
     feats, targ, gain_x, gain_y = [], [], [], []
@@ -472,9 +470,8 @@ def _uniform(key, lo_hi, shape=()):
     return jax.random.uniform(key, shape, minval=lo_hi[0], maxval=lo_hi[1])
 
 
-def _nominal_hit(cfg: World):
-    """A typical hit (ball centre) and incoming ball velocity, the plan before any prediction."""
-    return jnp.array([-1.52, 0.0, 1.0]), jnp.array([-4.0, 0.0, 0.0])
+# A typical hit (ball centre, its velocity): the plan before the first prediction.
+_NOMINAL_HIT = ((-1.52, 0.0, 1.0), (-4.0, 0.0, 0.0))
 
 
 def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backends.Policy:
@@ -550,8 +547,7 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
         offset = chosen * jax.random.uniform(keys[5], (8,), minval=-1.0, maxval=1.0) * jnp.array(scfg.perturb)
         pref_off = chosen * jax.random.uniform(keys[6], (8,), minval=-1.0, maxval=1.0) * jnp.array(scfg.posture)
         hit_x = _uniform(keys[7], scfg.hit_x)
-        p_nom, v_nom = _nominal_hit(cfg)
-        p_nom = p_nom.at[0].set(hit_x)
+        p_nom, v_nom = jnp.array(_NOMINAL_HIT[0]).at[0].set(hit_x), jnp.array(_NOMINAL_HIT[1])
         clearance = _uniform(keys[8], scfg.net_clearance)
         duration = return_time(cfg, p_nom, target, clearance)
         theta = stroke_guess(cfg, scfg, p_nom, v_nom, target, duration)
@@ -613,7 +609,8 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
         # a warm start stuck away from the target restarts from the posture (at most every
         # ik_restart_steps, the iterations a restart needs to converge)
         # (not close to the hit, where the jump would spoil the swing)
-        qd_hit = blade_joint_velocity(cfg, q_hit, theta[2] * normal, scfg.hit_speed_frac)
+        qd_hit = blade_joint_velocity(cfg, q_hit, theta[2] * normal, scfg.hit_speed_frac,
+                                      scfg.blade_turn_cost)
         # no update from a ball in contact with the table (its velocity is mid-bounce)
         update = found & ~struck & ~bounce_now & (p[2] > tab.top_z + b.radius)
         stuck = ((jnp.linalg.norm(forward_kinematics(cfg, q_hit)[0] - blade) > scfg.ik_restart_err)
@@ -650,7 +647,7 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
         q_new = jnp.clip(q_new, lo, hi)
 
         # -- the command: servo feed-forward, the per-episode joint offsets, limits
-        u = q_new + (2.0 * zeta / omega + scfg.servo_lead_s) * v_new + a_new / omega**2 + carry.offset
+        u = q_new + (2.0 * zeta / omega) * v_new + a_new / omega**2 + carry.offset
         u = jnp.clip(u, lo, hi)
         step_max = vmax * r.speed_margin * dt
         u = jnp.clip(u, u_prev - step_max, u_prev + step_max)
