@@ -434,12 +434,25 @@ class Runner:
             if not faults & LATCHING:
                 self._send(cmd.target, now)
                 t_sent = now
+                faults = self._prepare(faults)
         if now > t_grid + self.contract.dt:
             faults |= FAULTS["overrun"]
             self.overruns += 1
         log.tick(n, t_grid=t_grid, frame=frame, ball=ball, joint=joint, command=self.last_target,
                  faults=faults, executed=True, t_wake=wake, t_sent=t_sent, raw_action=raw)
         self._count(faults)
+        return faults
+
+    def _prepare(self, faults: int) -> int:
+        """After the command is out: let the policy precompute the observation-independent part
+        of its next step (numpy LSTM: the recurrent matmuls), off the latency-critical path."""
+        prep = getattr(self.policy, "prepare", None)
+        if prep is None:
+            return faults
+        try:
+            prep(self._state)
+        except Exception:
+            return faults | FAULTS["policy_error"]
         return faults
 
     def _policy_action(self, frame, frames, faults) -> tuple[np.ndarray | None, int]:
