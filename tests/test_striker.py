@@ -168,7 +168,7 @@ def test_hits_and_returns(demos, name, min_hit, min_return):
     tr = demos[name]
     assert tr.hit.mean() >= min_hit, f"{name}: hit rate {tr.hit.mean():.2f}"
     assert tr.on_opponent.mean() >= min_return, f"{name}: return rate {tr.on_opponent.mean():.2f}"
-    assert not tr.bounce_own[tr.hit].__invert__().any(), "struck before the own-half bounce"
+    assert tr.bounce_own[tr.hit].all(), "struck before the own-half bounce"
 
 
 def test_landings_cover_the_opponents_half(demos):

@@ -53,21 +53,31 @@ def trained(demo_dir, tmp_path_factory):
     return d, out
 
 
-def test_tiny_training_learns_to_hit_above_its_start(trained, demo_dir, tmp_path):
-    """An untrained policy never returns a ball; GCBC on 200 demonstrations plus practice must
-    hit at least a quarter of them (the demonstrator hits > 90%)."""
+def return_rate(run: Run, params, n: int = 64) -> float:
+    """Fraction of n narrow throws the policy returns to the opponent's half (uniform goals)."""
+    from eval.evaluate import rollout_goals
+    from eval.metrics import uniform_goals
+    goals = uniform_goals(jax.random.PRNGKey(11), n, run.cfg.world.table)
+    tr = rollout_goals(run.cfg.world, run.cfg.policy, params, run.backend, jax.random.PRNGKey(12), goals,
+                       members=run.cfg.train.members)
+    return float(np.mean(tr.on_opponent))
+
+
+def test_tiny_training_learns_to_return_balls_above_its_start(trained, demo_dir, tmp_path):
+    """An untrained policy (its actions sit at the demonstrations' mean pose) blocks balls but
+    does not return them; GCBC on 200 demonstrations plus practice must return a fifth of them
+    (the demonstrator returns > 90% of narrow throws)."""
     run_dir, out = trained
     assert out["finished"]
     rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"))]
     assert [r["iteration"] for r in rows] == list(range(len(rows)))
-    assert rows[-1]["trajectories"] == 328 and rows[-1]["cache_size"] >= 200
-    # The starting point: the same architecture, untrained.
+    assert rows[-1]["trajectories"] == 328 and rows[-1]["cache_size"] >= 150
     cfg = tiny(demo_dir, tmp_path / "start")
     run = Run(cfg, progress=False)
-    start = run.initial()
-    before = run.evaluate(start.state.params, jax.random.PRNGKey(0))
-    assert before["hit_rate"] <= 0.1
-    assert out["eval_hit_rate"] >= 0.25 > before["hit_rate"] + 0.1
+    before = return_rate(run, run.initial().state.params)
+    after = return_rate(run, final_params(str(run_dir)).state.params)
+    assert before <= 0.05, before
+    assert after >= 0.2, (before, after)
     assert os.path.exists(os.path.join(run_dir, "learning_curve.png"))
     assert os.path.isdir(os.path.join(run_dir, "tensorboard"))
     saved = json.load(open(os.path.join(run_dir, "config.json")))

@@ -1,33 +1,36 @@
 """The scripted demonstrator: a model-based striker, a closed-loop policy of the observation.
 
 It produces the paper's non-goal-directed bootstrap data ("Bootstrapping from non-goal-directed
-data"): it hits the thrown ball and returns it to a RANDOM point of the opponent's half, drawn
-per episode; the commanded goal in the observation is ignored. Every control step it
+data"): it hits the thrown ball after its bounce and returns it toward a RANDOM point of the
+opponent's half drawn per episode, so that the landings spread over the half; the commanded
+goal in the observation is ignored. Every control step it
 
-1. estimates the ball's spin from the observed velocity change (the air model's residual is the
-   Magnus force; the observation has no spin), and notes the ball's own-half bounce;
-2. predicts the ball's flight with the world's air model (`ballphysics`) and a table bounce
-   model (`BallModel`), and picks the hit: where the ball, after its bounce, crosses the
-   episode's hitting plane x = `hit_x`;
-3. solves the stroke (Newton on the blade's face normal and its speed along it) so that the
-   ball, after a paddle bounce model (`BallModel`), flies with drag and Magnus to the episode's
-   landing target with the episode's net clearance;
-4. solves the 8-DOF inverse kinematics (damped Gauss-Newton on `forward_kinematics`, written here
-   in jnp from the chain in scene.py) for the blade centre at the hit with the stroke's normal
-   and the episode's random blade roll, and the joint velocities that move the blade centre at
-   the stroke's velocity;
-5. moves a joint-space reference toward the plan: a cubic approach to a back-swing pose, a
-   constant-acceleration strike that passes the hit pose at the hit time with the hit velocity,
-   then a decelerating follow-through; the command adds the position servo's velocity and
-   acceleration feed-forward and respects the joint ranges and speed limits.
+1. tracks the ball: its own-half bounce, and its spin, estimated from the observed velocity
+   change (the residual of gravity and drag is the Magnus force; the observation has no spin);
+2. predicts the flight with the world's air model (`ballphysics`, RK2 at `predict_dt`) and the
+   table `Surface` bounce model, and picks the hit: after the bounce, where the ball crosses the
+   episode's hitting plane x = hit_x (or earlier: before it falls too low, or late in the
+   episode, so that the return can land in time);
+3. solves the stroke: Newton on the face normal (yaw, pitch) and the blade speed along it, so
+   that the ball, after the paddle `Surface` bounce, flies with drag and Magnus from the hit to
+   the landing target in the flight time that clears the net by the episode's clearance;
+4. solves the 8-DOF inverse kinematics (damped Gauss-Newton on `forward_kinematics`, the chain of
+   scene.py in jnp, warm-started from the last step) for the blade centre one ball radius plus
+   half a blade behind the hit, with the stroke's normal and the episode's blade roll, and the
+   joint velocities that move the blade centre at the stroke's velocity (`blade_joint_velocity`);
+5. steps a joint-space reference: a cubic approach to a back-swing pose, a constant-acceleration
+   strike that reaches the hit velocity `hold_s` before the hit, a constant-velocity hold through
+   it, then a decaying follow-through. The command is the reference plus the position servo's
+   velocity and acceleration feed-forward, kept inside the joint ranges and the speed clipping of
+   `env.command` (the environment never has to clip it).
 
-Per-episode randomness (drawn in `init`): landing target, net clearance, hitting plane, blade roll
-and face, strike duration, and "perturb 4 of the 8 joints" (as in the paper): a constant offset
-on the commands of 4 random joints and a random posture preference for the same 4 joints (which
-only moves the robot within the redundancy of the 8-DOF chain).
+Per-episode randomness, drawn in `init`: landing target, net clearance, hitting plane, blade roll
+(size and side) and face, strike duration, and "perturb 4 of the 8 joints" (as in the paper): a
+constant offset on the commands of 4 random joints, and a random posture preference for the same
+4 joints (the posture only moves the robot within the redundancy of the 8-DOF chain).
 
-Pure jnp, no Python control flow on traced values: runs inside the MJX rollout and, jit-compiled
-and vmapped, on the MuJoCo C backend.
+Pure jnp with no Python control flow on traced values: it runs inside the jit-compiled MJX rollout
+and, jit-compiled and vmapped, between the MuJoCo C backend's physics calls.
 """
 from __future__ import annotations
 
@@ -85,7 +88,7 @@ class BallModel:
 class StrikerConfig:
     """The striker's plan and its per-episode randomization (uniform ranges)."""
     # Where the returned ball should land (opponent's half, margins from the edges and the net).
-    target_x: tuple = (0.25, 1.17)
+    target_x: tuple = (0.18, 1.2)
     target_y: tuple = (-0.62, 0.62)
     # The return's ball-centre height above the net tape where it crosses the net (drag-free plan).
     net_clearance: tuple = (0.10, 0.40)
@@ -97,7 +100,8 @@ class StrikerConfig:
     hit_x: tuple = (-1.62, -1.42)
     # Blade roll: the angle of the extension (link6 x) in the blade plane from "pointing down",
     # positive toward +y. Its size is drawn per episode; its sign too, except for a ball wider
-    # than roll_side_y, where the blade reaches out toward the ball's side (decided at launch).
+    # than roll_side_y, where the blade reaches out toward the ball's side (decided on the first
+    # predicted hit).
     # A high hit raises the size to keep the wrist (the blade hangs below it) below wrist_max_z.
     roll_deg: tuple = (0.0, 100.0)
     roll_side_y: float = 0.25
@@ -113,8 +117,9 @@ class StrikerConfig:
     hit_speed_frac: float = 0.7
     blade_turn_cost: float = 0.03     # (rad/s)^-2, see blade_joint_velocity
     approach_speed_frac: float = 0.9
-    # "Perturb 4 of the 8 joints": constant command offsets (m, rad) on `perturb_joints` random
-    # joints, and the same joints' posture preference offsets (null-space only).
+    # "Perturb 4 of the 8 joints": constant command offsets (m, rad, up to `perturb`) on
+    # `perturb_joints` random joints, and offsets of the same joints' posture preference (up to
+    # `posture`; the IK keeps the blade's pose, so these only move the robot in its redundancy).
     perturb_joints: int = 4
     perturb: tuple = (0.01, 0.01, 0.02, 0.02, 0.02, 0.03, 0.03, 0.03)
     posture: tuple = (0.08, 0.15, 0.25, 0.15, 0.15, 0.4, 0.2, 0.4)
@@ -128,6 +133,18 @@ class StrikerConfig:
     ik_restart_err: float = 0.02    # m
     ik_restart_steps: int = 8
     model: BallModel = BallModel()
+
+    def __post_init__(self):
+        for name in ("perturb", "posture"):
+            if len(getattr(self, name)) != 8:
+                raise ValueError(f"StrikerConfig.{name} must have 8 entries (one per joint), "
+                                 f"got {getattr(self, name)}")
+        if not 0 <= self.perturb_joints <= 8:
+            raise ValueError(f"StrikerConfig.perturb_joints must be in 0..8, got {self.perturb_joints}")
+        for name in ("target_x", "target_y", "net_clearance", "hit_x", "roll_deg", "strike_s"):
+            lo, hi = getattr(self, name)
+            if not lo <= hi:
+                raise ValueError(f"StrikerConfig.{name} must be a (low, high) range, got {(lo, hi)}")
 
 
 class StrikerState(NamedTuple):
@@ -544,8 +561,9 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
         roll_sign = jnp.where(jax.random.bernoulli(keys[3]), 1.0, -1.0)
         face = jnp.where(jax.random.bernoulli(keys[10]), 1.0, -1.0)
         chosen = jnp.zeros(8).at[jax.random.permutation(keys[4], 8)[:scfg.perturb_joints]].set(1.0)
-        offset = chosen * jax.random.uniform(keys[5], (8,), minval=-1.0, maxval=1.0) * jnp.array(scfg.perturb)
-        pref_off = chosen * jax.random.uniform(keys[6], (8,), minval=-1.0, maxval=1.0) * jnp.array(scfg.posture)
+        signed = lambda k: chosen * jax.random.uniform(k, (8,), minval=-1.0, maxval=1.0)  # noqa: E731
+        offset = signed(keys[5]) * jnp.array(scfg.perturb)
+        pref_off = signed(keys[6]) * jnp.array(scfg.posture)
         hit_x = _uniform(keys[7], scfg.hit_x)
         p_nom, v_nom = jnp.array(_NOMINAL_HIT[0]).at[0].set(hit_x), jnp.array(_NOMINAL_HIT[1])
         clearance = _uniform(keys[8], scfg.net_clearance)
@@ -559,11 +577,13 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
                          scfg.ik_init_iters)
         z8 = jnp.zeros(8)
         return StrikerState(
-            target=target, clearance=clearance, hit_x=hit_x, roll=roll, roll_sign=roll_sign, face=face,
-            strike_s=_uniform(keys[9], scfg.strike_s), offset=offset, posture_offset=pref_off,
-            t_hit=jnp.asarray(0.65), p_hit=p_nom, theta=theta, q_hit=q_hit, q_seed=q_hit, ik_age=jnp.int32(0), qd_hit=z8,
-            q_ref=z8, v_ref=z8, u_prev=z8, v_prev=jnp.zeros(3), spin=jnp.zeros(3),
-            bounced=jnp.array(False), struck=jnp.array(False), side_set=jnp.array(False))
+            target=target, clearance=clearance, hit_x=hit_x, roll=roll, roll_sign=roll_sign,
+            side_set=jnp.array(False), face=face, strike_s=_uniform(keys[9], scfg.strike_s),
+            offset=offset, posture_offset=pref_off,
+            t_hit=jnp.asarray(0.65), p_hit=p_nom, theta=theta, q_hit=q_hit, q_seed=q_hit,
+            ik_age=jnp.int32(0), qd_hit=z8,
+            q_ref=z8, v_ref=z8, u_prev=z8,
+            v_prev=jnp.zeros(3), spin=jnp.zeros(3), bounced=jnp.array(False), struck=jnp.array(False))
 
     def apply(params, carry: StrikerState, obs: Obs, key):
         tab = cfg.table
