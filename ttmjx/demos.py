@@ -43,7 +43,7 @@ def source_policy(cfg: World, source: str, params_dir: str | None = None):
     """(Policy, params) of a demonstration source."""
     if source == "scripted":
         from ttmjx import striker
-        return striker.striker_policy(cfg), None
+        return striker.striker_policy(cfg, striker.imitable()), None
     if source == "es":
         from ttmjx import es
         return es.load_policy(cfg, params_dir)

@@ -105,6 +105,8 @@ class StrikerConfig:
     # A high hit raises the size to keep the wrist (the blade hangs below it) below wrist_max_z.
     roll_deg: tuple = (0.0, 100.0)
     roll_side_y: float = 0.25
+    roll_plus_prob: float = 0.5     # P(positive roll) for a ball not wider than roll_side_y
+    back_face_prob: float = 0.5     # P(the blade's back face hits)
     wrist_max_z: float = 1.2
     # Posture: the gantry carriage this far behind the hit, and following this fraction of its y.
     reach_x: float = 0.45
@@ -558,8 +560,8 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
         keys = jax.random.split(key, 11)
         target = jnp.stack([_uniform(keys[0], scfg.target_x), _uniform(keys[1], scfg.target_y)])
         roll = _uniform(keys[2], scfg.roll_deg) * (math.pi / 180.0)
-        roll_sign = jnp.where(jax.random.bernoulli(keys[3]), 1.0, -1.0)
-        face = jnp.where(jax.random.bernoulli(keys[10]), 1.0, -1.0)
+        roll_sign = jnp.where(jax.random.bernoulli(keys[3], scfg.roll_plus_prob), 1.0, -1.0)
+        face = jnp.where(jax.random.bernoulli(keys[10], 1.0 - scfg.back_face_prob), 1.0, -1.0)
         chosen = jnp.zeros(8).at[jax.random.permutation(keys[4], 8)[:scfg.perturb_joints]].set(1.0)
         signed = lambda k: chosen * jax.random.uniform(k, (8,), minval=-1.0, maxval=1.0)  # noqa: E731
         offset = signed(keys[5]) * jnp.array(scfg.perturb)
@@ -679,3 +681,14 @@ def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backend
         return carry, u
 
     return backends.Policy(init=init, apply=apply)
+
+
+def imitable() -> StrikerConfig:
+    """The striker for bootstrap datasets that a goal-conditioned policy must imitate.
+
+    The default draws latent choices the observation cannot reveal before the swing (which blade
+    face, which roll side, how long the strike): averaged by a mean-squared-error imitation,
+    such modes give a stroke that is none of them. Here the face and roll side are fixed and the
+    strike duration narrow; the landing target (the relabeled goal), the net clearance, the
+    hitting plane and the 4 perturbed joints stay random, so landings still cover the half."""
+    return StrikerConfig(roll_plus_prob=1.0, back_face_prob=0.0, roll_deg=(20.0, 60.0), strike_s=(0.15, 0.17))
