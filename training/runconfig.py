@@ -113,8 +113,8 @@ def paper_sim_new() -> RunConfig:
         world=World().with_throws("any"),
         policy=PolicyConfig(kind="framestack", hidden=1024, layers=2, obs_size=13, frame_stack=8),
         train=TrainConfig(window=96, batch_size=64, learning_rate=3e-4, members=10, capacity=131_072,
-                          action_noise=0.2),
-        demos=3600, pretrain_steps=5000, steps_between_ssp=100, episodes_per_ssp=1000,
+                          action_noise=0.05),
+        demos=3600, pretrain_steps=2000, steps_between_ssp=100, episodes_per_ssp=1000,
         total_trajectories=100_000, eval_every=10_000, checkpoint_every=20, run_dir="runs/paper-sim-new")
 
 
