@@ -153,3 +153,38 @@ def test_eval_cli_reports_json_metrics(trained):
     bad = subprocess.run([sys.executable, "-m", "ttmjx.cli", "eval", "/nonexistent/run"], capture_output=True,
                          text=True, timeout=120)
     assert bad.returncode == 2 and "neither a run directory" in bad.stderr
+
+
+def test_robot_practice_closes_the_loop(trained, demo_dir, tmp_path):
+    """play -> log -> relabel -> train -> export -> play: the trained run is exported, plays
+    episodes on the simulated station through the robot runner, and a resumed run trains on
+    the relabeled logs."""
+    run_dir, _ = trained
+    exp = str(tmp_path / "export")
+    logs = str(tmp_path / "logs")
+    assert ttmjx_cli("export", str(run_dir), "--out", exp, "--member", "0").returncode == 0
+    played = ttmjx_cli("robot", "run", "--policy", exp, "--station", "sim", "--goals", "0.7,0.3;0.5,-0.4",
+                       "--n", "2", "--out", logs, "--json")
+    assert played.returncode == 0, played.stderr[-2000:]
+    res = json.loads(played.stdout.strip().splitlines()[-1])
+    assert res["goals"] == 4 and {"within_30cm", "within_20cm", "hit_rate"} <= set(res)
+    # Resume a copy of the run with the logs: they are relabeled into the cache.
+    import shutil
+    resumed = str(tmp_path / "resumed")
+    shutil.copytree(str(run_dir), resumed)
+    before = final_params(resumed).cache
+    cfg = tiny(demo_dir, resumed, data=(logs,), total_trajectories=360)
+    Run(cfg, progress=False).run(max_iterations=1)
+    after = final_params(resumed)
+    from training.trainer import load_logs
+    logged = load_logs([logs], cfg.world.horizon)
+    assert logged.size == 4
+    from training.data import keep_for_training
+    kept = int(np.sum(keep_for_training(logged, cfg.world.table, cfg.train.goal_margin)))
+    practice_kept = json.loads(open(os.path.join(resumed, "metrics.jsonl")).read().splitlines()[-1])["practice_kept"]
+    assert int(after.cache.count) == int(before.count) + kept + int(practice_kept)
+    assert int(after.counters.trajectories) == 328 + 4 + cfg.episodes_per_ssp
+
+
+def ttmjx_cli(*args):
+    return subprocess.run([sys.executable, "-m", "ttmjx.cli", *args], capture_output=True, text=True, timeout=900)

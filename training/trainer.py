@@ -180,6 +180,19 @@ class Run:
         home = jnp.array(r.home)
         return norm._replace(act_mean=home, act_std=jnp.minimum(span, 1.0))
 
+    def absorb_logs(self, ck: Checkpointed) -> Checkpointed:
+        """Robot practice closes the loop: relabel the logs in cfg.data, append them to the
+        cache and save, so the resumed run trains on them."""
+        cfg = self.cfg
+        logs = load_logs(cfg.data, cfg.world.horizon)
+        cache = add_episodes(ck.cache, jax.tree.map(jnp.asarray, record.to_numpy(logs)), cfg.world.table,
+                             cfg.train.goal_margin)
+        self.log(f"[ttmjx] added {int(cache.count - ck.cache.count)} of {logs.size} logged episodes "
+                 f"from {', '.join(cfg.data)} to the cache")
+        ck = ck._replace(cache=cache, counters=ck.counters._replace(
+            trajectories=ck.counters.trajectories + logs.size))
+        return ck
+
     def template(self) -> Checkpointed:
         """Shapes and dtypes of a checkpoint (values unused)."""
         from models.normalizer import identity_normalizer
@@ -265,6 +278,8 @@ class Run:
         else:
             self.log(f"[ttmjx] resuming {cfg.run_dir} at iteration {int(ck.counters.iteration)}")
             self._truncate_metrics(int(ck.counters.iteration))
+            if cfg.data:
+                ck = self.absorb_logs(ck)
         n_pre, n_tot = pretrain_iterations(cfg), total_iterations(cfg)
         base = jnp.asarray(ck.key)
         last = {}
