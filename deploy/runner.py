@@ -270,8 +270,12 @@ class Runner:
 
     # ------------------------------------------------------------------ output
     def _send(self, target: np.ndarray, now: float) -> None:
+        # The send time is read at the moment of sending (not when the tick decided): the step
+        # limit of the next tick then measures its elapsed time from the real send, so the
+        # interval between two sends is never shorter than the one the limit allowed for.
+        sent_at = self.clock.now()
         self.robot.send(target.copy())
-        self.last_target, self.t_last_sent = target.copy(), now
+        self.last_target, self.t_last_sent = target.copy(), sent_at
 
     def _elapsed(self, now: float) -> float | None:
         return None if self.t_last_sent is None else now - self.t_last_sent

@@ -31,9 +31,14 @@ def cmd_eval(args):
     world = cfg.world if not args.distribution else cfg.world.with_throws(args.distribution)
     be = Backend(world, resolve_backend(args.backend or cfg.backend))
     key = jax.random.PRNGKey(args.seed)
-    members = cfg.train.members
+    members, params = cfg.train.members, ck.state.params
+    if args.member is not None:
+        from models.policy import member
+        if not 0 <= args.member < members:
+            raise ValueError(f"--member {args.member} is out of range: the run has {members} members")
+        members, params = None, member(params, args.member)
     if args.goals == "five":
-        out = evaluate_five(world, cfg.policy, ck.state.params, be, key, args.per_goal, members)
+        out = evaluate_five(world, cfg.policy, params, be, key, args.per_goal, members)
     else:
         try:
             n = int(args.goals)
@@ -41,7 +46,7 @@ def cmd_eval(args):
             raise ValueError(f"--goals must be a number of uniform goals or 'five', got {args.goals!r}")
         if n < 1:
             raise ValueError(f"--goals must be >= 1, got {n}")
-        out = evaluate_params(world, cfg.policy, ck.state.params, be, key, n, members)
+        out = evaluate_params(world, cfg.policy, params, be, key, n, members)
     out = {**out, "distribution": world.throws.name, "trajectories": int(ck.counters.trajectories)}
     text = "\n".join(f"{k:14s} {v:.3f}" if isinstance(v, float) else f"{k:14s} {v}"
                      for k, v in out.items() if k != "per_goal")
@@ -61,5 +66,6 @@ def register(sub, common):
     sp.add_argument("--per-goal", type=int, default=40, help="attempts per goal with --goals five")
     sp.add_argument("--backend", choices=("c", "mjx"), default=None)
     sp.add_argument("--seed", type=int, default=1234)
+    sp.add_argument("--member", type=int, default=None, help="evaluate one ensemble member alone")
     sp.add_argument("--json", action="store_true")
     sp.set_defaults(fn=cmd_eval)
