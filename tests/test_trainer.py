@@ -167,7 +167,8 @@ def test_robot_practice_closes_the_loop(trained, demo_dir, tmp_path):
                        "--n", "2", "--out", logs, "--json")
     assert played.returncode == 0, played.stderr[-2000:]
     res = json.loads(played.stdout.strip().splitlines()[-1])
-    assert res["goals"] == 4 and {"within_30cm", "within_20cm", "hit_rate"} <= set(res)
+    assert res["episodes"] == 4 and {"within_30cm", "within_20cm", "hit_rate"} <= set(res["metrics"])
+    assert res["violations_true_limits"]["range"] == 0 and res["violations_true_limits"]["rate"] == 0
     # Resume a copy of the run with the logs: they are relabeled into the cache.
     import shutil
     resumed = str(tmp_path / "resumed")
@@ -188,3 +189,12 @@ def test_robot_practice_closes_the_loop(trained, demo_dir, tmp_path):
 
 def ttmjx_cli(*args):
     return subprocess.run([sys.executable, "-m", "ttmjx.cli", *args], capture_output=True, text=True, timeout=900)
+
+
+def test_gcsl_starts_from_zero_demonstrations(tmp_path):
+    """GCSL = practice from nothing: the untrained policy's own hits are all the data."""
+    cfg = dataclasses.replace(runconfig.tiny(), demos=0, pretrain_steps=0, run_dir=str(tmp_path / "gcsl"))
+    out = Run(cfg, progress=False).run(max_iterations=1)
+    row = json.loads(open(os.path.join(cfg.run_dir, "metrics.jsonl")).read().splitlines()[-1])
+    assert out["trajectories"] == cfg.episodes_per_ssp and row["phase"] == "practice"
+    assert row["cache_size"] == row["practice_kept"]

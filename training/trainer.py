@@ -155,23 +155,21 @@ class Run:
             norm = self._bootstrap_normalizer(key)
             seen = 0
         state = init_train_state(jax.random.fold_in(key, 1), cfg.policy, cfg.train, norm)
-        return Checkpointed(state, cache, jax.random.key_data(key) if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) else key,
-                            Counters(jnp.int32(0), jnp.int32(seen), jnp.int32(0)))
+        return Checkpointed(state, cache, key, Counters(jnp.int32(0), jnp.int32(seen), jnp.int32(0)))
 
     def _bootstrap_normalizer(self, key):
-        from models.normalizer import normalizer_from_data
-        from models.policy import init_params
-        from models.normalizer import identity_normalizer
-        cfg = self.cfg
-        params = init_params(jax.random.fold_in(key, 2), cfg.policy, identity_normalizer(cfg.policy.obs_size))
-        from models.policy import make_policy
+        """GCSL has no demonstrations to normalize with: observation statistics from 64 episodes
+        of the untrained policy, action statistics from the robot's home pose and ranges."""
+        from models.normalizer import identity_normalizer, normalizer_from_data
+        from models.policy import init_params, make_policy, observation_vector
         from training.practice import uniform_goals
         from ttmjx import thrower
+        cfg = self.cfg
+        params = init_params(jax.random.fold_in(key, 2), cfg.policy, identity_normalizer(cfg.policy.obs_size))
         n = 64
         th = thrower.sample_throws(jax.random.fold_in(key, 3), cfg.world, n)
         traj = self.backend.rollout(make_policy(cfg.policy), params, jax.random.fold_in(key, 4), th,
                                     np.asarray(uniform_goals(jax.random.fold_in(key, 5), n, cfg.world)))
-        from models.policy import observation_vector
         obs = observation_vector(jnp.asarray(traj.obs), jnp.asarray(traj.ball_vel), cfg.policy.obs_size)
         # Actions of an untrained net carry no scale: use the joint ranges' spread instead.
         r = cfg.world.robot
