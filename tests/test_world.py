@@ -248,8 +248,10 @@ def test_backend_parity_positions_and_events(c_backend, mjx_backend):
 
 
 def test_bad_input_errors_name_the_field(c_backend):
-    with pytest.raises(ValueError, match="control_hz=7"):
-        World(control_hz=7)
+    with pytest.raises(ValueError, match="control_hz=60 does not divide into physics steps of physics_dt=0.001s"):
+        World(control_hz=60, physics_dt=0.001)
+    with pytest.raises(ValueError, match="control_hz must be a positive integer"):
+        World(control_hz=0)
     with pytest.raises(ValueError, match="unknown throw distribution 'wide'"):
         CFG.with_throws("wide")
     th = hand_throws([1.7, 0.2, 0.95], [-6.5, -0.2, 1.0])
@@ -264,3 +266,17 @@ def test_bad_input_errors_name_the_field(c_backend):
         c_backend.step(s, np.array([[0, 0, 0, np.inf, 0, 0, 0, 0]]))
     with pytest.raises(ValueError, match="unknown backend 'gpu'"):
         backends.Backend(CFG, "gpu")
+
+
+@pytest.mark.parametrize("hz", [20, 60])
+def test_other_control_rates_run_the_same_task(hz):
+    """20 Hz (the real robot) and 60 Hz (varied balls) with physics substeps beneath."""
+    cfg = World(control_hz=hz)
+    assert cfg.substeps * cfg.physics_dt == pytest.approx(1.0 / hz) and cfg.physics_dt <= 0.001
+    be = backends.Backend(cfg, "c")
+    pos, normal = paddle_pose(cfg)
+    th = hand_throws(pos + 0.1 * normal, np.array([3.2, 0.0, 0.0]) - 2.5 * normal)
+    tr = be.rollout(backends.hold_policy(), None, jax.random.PRNGKey(0), th, np.zeros((1, 2)))
+    assert tr.obs.shape == (1, cfg.horizon, 13) and cfg.horizon == round(cfg.episode_s * hz)
+    assert bool(tr.hit[0]) and np.isfinite(tr.landing[0]).all()
+

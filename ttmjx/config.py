@@ -190,15 +190,23 @@ class World:
     contacts: Contacts = Contacts()
     robot: Robot = Robot()
     throws: Throws = Throws()
-    physics_dt: float = 0.001
+    physics_dt: float | None = None
+    """Physics time step (s); None: the largest step <= max_physics_dt that divides the control
+    period (1 ms at 20 and 100 Hz, 1/1020 s at 60 Hz). Contacts are calibrated near 1 ms."""
     control_hz: int = 100
+    max_physics_dt: float = 0.001
     episode_s: float = 1.6
     ball_velocity_obs: bool = False   # True: 16-value observations (the paper's original sim)
     frame_stack: int = 8
 
     def __post_init__(self):
+        if not isinstance(self.control_hz, int) or self.control_hz <= 0:
+            raise ValueError(f"control_hz must be a positive integer (20, 60 or 100), got {self.control_hz!r}")
+        if self.physics_dt is None:
+            n = math.ceil(1.0 / (self.control_hz * self.max_physics_dt) - 1e-9)
+            object.__setattr__(self, "physics_dt", 1.0 / (self.control_hz * n))
         steps = 1.0 / (self.control_hz * self.physics_dt)
-        if self.control_hz <= 0 or abs(steps - round(steps)) > 1e-6 or round(steps) < 1:
+        if abs(steps - round(steps)) > 1e-6 or round(steps) < 1:
             raise ValueError(f"control_hz={self.control_hz} does not divide into physics steps of "
                              f"physics_dt={self.physics_dt}s (1/(hz*dt) = {steps:.4g} is not an integer)")
         if self.frame_stack < 1:
