@@ -170,19 +170,30 @@ class Runner:
 
     def run_episodes(self, goals, out_dir: str | None = None,
                      on_armed: Callable[[int], None] | None = None,
-                     prefix: str = "episode") -> list[Episode]:
-        """One episode per goal [N, 2]: move home, (on_armed(i)), run, save as
+                     prefix: str = "episode",
+                     complete: Callable[[int, Episode], Episode] | None = None,
+                     on_no_ball: Callable[[int], None] | None = None) -> list[Episode]:
+        """One episode per goal [N, 2]: move home, (on_armed(i)), run, (complete(i, ep)), save as
         `<prefix>_<i:04d>` under out_dir. Stops early (returning what ran) if the runner ends up
-        in HOLD, since only an operator may clear a hold."""
+        in HOLD, since only an operator may clear a hold. With on_no_ball, a ball that never
+        came (NoBallError) calls on_no_ball(i) and moves on to the next goal; without, it raises."""
         episodes = []
         for i, goal in enumerate(check_goals(goals)):
             if self.mode == Mode.HOLD or not self.move_home():
                 break
             if on_armed is not None:
                 on_armed(i)
-            ep = self.run_episode(goal)
+            try:
+                ep = self.run_episode(goal)
+            except NoBallError:
+                if on_no_ball is None:
+                    raise
+                on_no_ball(i)
+                continue
             if ep is None:
                 break
+            if complete is not None:
+                ep = complete(i, ep)
             ep.meta["episode"] = i
             if out_dir is not None:
                 save_episode(out_dir, f"{prefix}_{i:04d}", ep)

@@ -41,10 +41,9 @@ import mujoco
 import numpy as np
 
 from deploy.contract import Contract
-from deploy.episode_log import Episode, save_episode
+from deploy.episode_log import Episode
 from deploy.goals import check_goals
-from deploy.modes import Mode
-from deploy.runner import NoBallError, Runner, RunnerConfig
+from deploy.runner import Runner, RunnerConfig
 from deploy.safety import count_violations
 from ttmjx import record, scene
 from ttmjx.config import World
@@ -463,28 +462,14 @@ def play(runner: Runner, station: SimStation, goals, out_dir: str | None = None,
     `<prefix>_<i:04d>`; stop if the runner ends in HOLD), with each episode completed by the
     station's events before it is saved. A throw that never reached the robot (NoBallError)
     disarms and moves on to the next goal."""
-    episodes = []
-    for i, goal in enumerate(check_goals(goals)):
-        if runner.mode == Mode.HOLD or not runner.move_home():
-            break
-        station.throw_in(throw_delay_s)
-        try:
-            ep = runner.run_episode(goal)
-        except NoBallError:
-            runner.disarm()
-            station.finish_throw(finish_s)
-            continue
-        ev = station.finish_throw(finish_s)
-        if ep is None:
-            break
-        ep = complete_episode(ep, ev, runner.contract)
-        ep.meta["episode"] = i
-        if out_dir is not None:
-            save_episode(out_dir, f"{prefix}_{i:04d}", ep)
-        episodes.append(ep)
-        if runner.mode == Mode.HOLD:
-            break
-    return episodes
+    def no_ball(i):
+        runner.disarm()
+        station.finish_throw(finish_s)
+
+    return runner.run_episodes(
+        goals, out_dir, on_armed=lambda i: station.throw_in(throw_delay_s), prefix=prefix,
+        complete=lambda i, ep: complete_episode(ep, station.finish_throw(finish_s), runner.contract),
+        on_no_ball=no_ball)
 
 
 def _nan_to_none(x):

@@ -3,9 +3,9 @@ distance to the goal over hit balls, hit rate; 200 uniform goals or the fixed fi
 protocol."""
 from __future__ import annotations
 
-import jax
 import numpy as np
 
+from ttmjx import env
 from ttmjx.config import Table
 
 # The five evaluation goals (the paper's Figure 1c shows five targets spread over the
@@ -21,9 +21,8 @@ FIVE_GOALS = {
 
 
 def uniform_goals(key, n: int, table: Table) -> np.ndarray:
-    """[n, 2] goals uniform over the opponent's half of the table top."""
-    u = np.asarray(jax.random.uniform(key, (n, 2)))
-    return np.stack([u[:, 0] * table.half_length, (2 * u[:, 1] - 1) * table.half_width], 1).astype(np.float32)
+    """[n, 2] goals uniform over the opponent's half (the same draw practice uses), as numpy."""
+    return np.asarray(env.uniform_goals(key, n, table), np.float32)
 
 
 def five_goals(per_goal: int) -> tuple[np.ndarray, list[str]]:

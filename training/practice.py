@@ -21,6 +21,7 @@ from training.config import TrainConfig
 from training.update import TrainState, make_train_loop
 from ttmjx import thrower
 from ttmjx.backends import Backend
+from ttmjx.env import uniform_goals
 from ttmjx.config import World
 from ttmjx.record import Trajectories
 
@@ -31,13 +32,6 @@ class PracticeStats(NamedTuple):
     within_30cm: jax.Array
     within_20cm: jax.Array
     kept: jax.Array          # episodes appended to the cache
-
-
-def uniform_goals(key, n: int, cfg: World):
-    """[n, 2] goals uniform over the opponent's half (jittable)."""
-    u = jax.random.uniform(key, (n, 2))
-    t = cfg.table
-    return jnp.stack([u[:, 0] * t.half_length, (2 * u[:, 1] - 1) * t.half_width], 1)
 
 
 def practice_policy(pcfg: PolicyConfig, tcfg: TrainConfig):
@@ -73,14 +67,14 @@ class Practice:
         self.policy = practice_policy(pcfg, tcfg)
         self.train_loop = make_train_loop(pcfg, tcfg, train_steps) if train_steps > 0 else None
         self._append = jax.jit(lambda cache, traj: add_episodes(cache, traj, world.table, tcfg.goal_margin))
-        self._goals = jax.jit(uniform_goals, static_argnums=(1, 2))
+        self._goals = jax.jit(uniform_goals, static_argnums=(1, 2))  # (key, n, table)
         self._fused = None
 
     # -- the pieces ---------------------------------------------------------------------
     def rollouts(self, params, key) -> Trajectories:
         """M practice episodes of the ensemble (members play equal blocks) toward uniform goals."""
         k_goal, k_throw, k_roll, _ = round_keys(key)
-        goals = self._goals(k_goal, self.episodes, self.world)
+        goals = self._goals(k_goal, self.episodes, self.world.table)
         throws = thrower.sample_throws(k_throw, self.world, self.episodes)
         return self.backend.rollout(self.policy, params, k_roll, throws, goals, members=self.tcfg.members)
 
@@ -117,7 +111,7 @@ class Practice:
 
         def fused(state, cache, key):
             k_goal, k_throw, k_roll, k_train = round_keys(key)
-            goals = uniform_goals(k_goal, episodes, world)
+            goals = uniform_goals(k_goal, episodes, world.table)
             throws = thrower.sample_throws(k_throw, world, episodes)
             traj = rollout(state.params, k_roll, throws, goals)
             new = add_episodes(cache, traj, world.table, self.tcfg.goal_margin)

@@ -162,14 +162,14 @@ class Run:
         of the untrained policy, action statistics from the robot's home pose and ranges."""
         from models.normalizer import identity_normalizer, normalizer_from_data
         from models.policy import init_params, make_policy, observation_vector
-        from training.practice import uniform_goals
+        from ttmjx.env import uniform_goals
         from ttmjx import thrower
         cfg = self.cfg
         params = init_params(jax.random.fold_in(key, 2), cfg.policy, identity_normalizer(cfg.policy.obs_size))
         n = 64
         th = thrower.sample_throws(jax.random.fold_in(key, 3), cfg.world, n)
         traj = self.backend.rollout(make_policy(cfg.policy), params, jax.random.fold_in(key, 4), th,
-                                    np.asarray(uniform_goals(jax.random.fold_in(key, 5), n, cfg.world)))
+                                    np.asarray(uniform_goals(jax.random.fold_in(key, 5), n, cfg.world.table)))
         obs = observation_vector(jnp.asarray(traj.obs), jnp.asarray(traj.ball_vel), cfg.policy.obs_size)
         # Actions of an untrained net carry no scale: use the joint ranges' spread instead.
         r = cfg.world.robot

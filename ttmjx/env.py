@@ -213,6 +213,12 @@ def advance(cfg: World, lay: Layout, state: State, target, qpos, qvel, ball, pad
                           target=target, t=state.t + 1, events=ev, frames=frames)
 
 
+def uniform_goals(key, n: int, table) -> jax.Array:
+    """[n, 2] goals uniform over the opponent's half of the table top (jittable; n static)."""
+    u = jax.random.uniform(key, (n, 2))
+    return jnp.stack([u[:, 0] * table.half_length, (2 * u[:, 1] - 1) * table.half_width], 1)
+
+
 def check_goals(goals, n: int | None = None) -> np.ndarray:
     """Validate user goals: [B, 2] finite floats. Raises ValueError naming the problem."""
     g = np.asarray(goals, dtype=np.float64)
