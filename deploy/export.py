@@ -499,7 +499,7 @@ def params_from_checkpoint(path: str, step: int | None = None):
     """(PolicyParams, PolicyConfig, World, source) from a training checkpoint.
 
     Reads the saved tree's metadata, finds the one subtree {'net', 'norm'} (models.PolicyParams;
-    in a `ttmjx train` checkpoint: state.params) and restores only that (orbax partial restore
+    in a `ttmjx train` checkpoint: state.ema, the acting policy) and restores only that (orbax partial restore
     to numpy: the trajectory cache and optimizer state are not read; no pickle). The
     PolicyConfig is the saved config's 'policy' if there is one (checked against the parameter
     shapes), else read from the shapes; the World is the saved config's 'world' (defaults if
@@ -527,7 +527,9 @@ def params_from_checkpoint(path: str, step: int | None = None):
     if not found:
         raise ExportError(f"checkpoint {directory} step {step} holds no policy parameters "
                           f"({{'net', 'norm'}} subtree)")
-    found.sort(key=lambda x: (x[0].split("/")[-1] != "params", len(x[0])))
+    # A `ttmjx train` state holds the trained weights (params) and their moving average (ema),
+    # which is the policy that acts.
+    found.sort(key=lambda x: ({"ema": 0, "params": 1}.get(x[0].split("/")[-1], 2), len(x[0])))
     where, sub_meta = found[0]
     keys = [k for k in where.split("/") if k]
     item = sub_meta

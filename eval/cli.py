@@ -27,11 +27,12 @@ def cmd_eval(args):
     from ttmjx.backends import Backend
     from ttmjx.cli import _print
     from training.runconfig import resolve_backend
+    from training.update import acting_params
     cfg, ck, _ = load_run(args.run)
     world = cfg.world if not args.distribution else cfg.world.with_throws(args.distribution)
     be = Backend(world, resolve_backend(args.backend or cfg.backend))
     key = jax.random.PRNGKey(args.seed)
-    members, params = cfg.train.members, ck.state.params
+    members, params = cfg.train.members, acting_params(ck.state)
     if args.member is not None:
         from models.policy import member
         if not 0 <= args.member < members:

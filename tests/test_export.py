@@ -313,13 +313,13 @@ def test_export_from_a_checkpoint_through_the_cli(tmp_path):
     from ttmjx.cli import main
     from ttmjx.config import to_dict
     params = random_params(MLP, seed=8, members=2)
-    state = init_train_state(jax.random.key(0), MLP, TrainConfig(members=2), member(params, 0).norm)._replace(params=params)
+    state = init_train_state(jax.random.key(0), MLP, TrainConfig(members=2), member(params, 0).norm)._replace(params=params, ema=params)
     world = World(frame_stack=4)
     checkpoint.save(str(tmp_path / "run" / "checkpoints"), 3,
                     {"state": state, "cache": {"obs": jnp.zeros((64, 20, 13))}, "key": jnp.zeros(2, jnp.uint32)},
                     {"world": to_dict(world), "policy": dataclasses.asdict(MLP)})
     p2, pcfg, w2, source = params_from_checkpoint(str(tmp_path / "run"))
-    assert pcfg == MLP and w2 == world and source.endswith("@3/state/params")
+    assert pcfg == MLP and w2 == world and source.endswith("@3/state/ema")
     main(["export", str(tmp_path / "run"), "--out", str(tmp_path / "exp"), "--member", "1",
           "--control-hz", "20"])
     pol, contract = load_export(str(tmp_path / "exp"))

@@ -15,6 +15,7 @@ import pytest
 from ttmjx import demos, record
 from training import checkpoint, runconfig
 from training.trainer import Run, is_eval_iteration, practice_iterations, pretrain_iterations
+from training.update import acting_params
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +76,7 @@ def test_tiny_training_learns_to_return_balls_above_its_start(trained, demo_dir,
     cfg = tiny(demo_dir, tmp_path / "start")
     run = Run(cfg, progress=False)
     before = return_rate(run, run.initial().state.params)
-    after = return_rate(run, final_params(str(run_dir)).state.params)
+    after = return_rate(run, acting_params(final_params(str(run_dir)).state))
     assert before <= 0.05, before
     assert after >= 0.2, (before, after)
     assert os.path.exists(os.path.join(run_dir, "learning_curve.png"))

@@ -14,6 +14,8 @@ from ttmjx.record import Trajectories, frame_stack
 from training import (Batch, TrainConfig, add_episodes, append, data_normalizer, empty_cache,
                       init_train_state, keep_for_training, make_train_loop, make_train_step,
                       masked_mse, member_update, policy_loss, relabel, sample_subsequences)
+from training.sampler import sample_episodes
+from training.update import acting_params, updated_ema
 from training import checkpoint
 
 TABLE = Table()
@@ -206,6 +208,47 @@ def test_ensemble_members_differ_and_train_in_one_vmapped_step(cache):
         assert float(l_i) == pytest.approx(float(loss[i]), rel=1e-5)
         np.testing.assert_allclose(p.net["params"]["head"]["kernel"],
                                    new.params.net["params"]["head"]["kernel"][i], rtol=1e-5, atol=1e-6)
+
+
+def test_ema_is_the_running_average_of_the_updates(cache):
+    """The acting policy after two steps is d^2 p0 + d(1-d) p1 + (1-d) p2 of the iterates; with
+    decay 0 it is the trained weights themselves."""
+    pcfg = PolicyConfig("framestack", hidden=8, layers=1, frame_stack=2)
+    d = 0.9
+    tcfg = TrainConfig(window=8, batch_size=4, members=2, learning_rate=1e-2, ema_decay=d)
+    step = make_train_step(pcfg, tcfg)
+    s0 = init_train_state(jax.random.PRNGKey(0), pcfg, tcfg, identity_normalizer(13))
+    s1, _ = step(s0, cache, jax.random.PRNGKey(1))
+    s2, _ = step(s1, cache, jax.random.PRNGKey(2))
+    k = lambda p: np.asarray(p.net["params"]["head"]["kernel"], np.float64)  # noqa: E731
+    want = d * d * k(s0.params) + d * (1 - d) * k(s1.params) + (1 - d) * k(s2.params)
+    np.testing.assert_allclose(k(acting_params(s2)), want, rtol=1e-5, atol=1e-7)
+    assert not np.allclose(k(acting_params(s2)), k(s2.params))
+    assert updated_ema(0.0, s1.ema, s2.params) is s2.params
+    with pytest.raises(ValueError, match="ema_decay=1.0"):
+        TrainConfig(ema_decay=1.0)
+
+
+def test_demo_fraction_keeps_demonstrations_in_every_batch():
+    """With demo_fraction f, rows come from demonstrations with probability max(f, their share),
+    uniformly within each group; 0 is uniform over the pool; one empty group falls back to uniform."""
+    c = empty_cache(100, 4)
+    c = c._replace(demo=jnp.zeros(100, bool).at[:10].set(True), size=jnp.int32(60), count=jnp.int32(60))
+    draw = jax.jit(sample_episodes, static_argnums=(2, 3))
+    n = 40_000
+    for f, p_demo in ((0.5, 0.5), (0.1, 10 / 60), (0.0, 10 / 60)):
+        rows = np.asarray(draw(jax.random.PRNGKey(0), c, n, f))
+        assert rows.min() >= 0 and rows.max() < 60                           # only filled rows
+        share = np.mean(rows < 10)
+        assert abs(share - p_demo) < 4 * math.sqrt(p_demo * (1 - p_demo) / n)
+        counts = np.bincount(rows, minlength=60)
+        for grp in (counts[:10], counts[10:60]):                                # uniform within groups
+            assert grp.min() > 0.8 * grp.mean() and grp.max() < 1.2 * grp.mean()
+    only_practice = c._replace(demo=jnp.zeros(100, bool))
+    rows = np.asarray(draw(jax.random.PRNGKey(1), only_practice, n, 0.5))
+    assert rows.max() < 60 and abs(np.mean(rows < 10) - 1 / 6) < 0.02
+    with pytest.raises(ValueError, match="demo_fraction=1.5"):
+        TrainConfig(demo_fraction=1.5)
 
 
 # --- checkpoints ----------------------------------------------------------------------------

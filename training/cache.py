@@ -22,6 +22,7 @@ class Cache(NamedTuple):
     valid: jnp.ndarray      # [C, T] bool, a prefix of each row
     hit_step: jnp.ndarray   # [C] int32
     goal: jnp.ndarray       # [C, 2] relabeled goal
+    demo: jnp.ndarray       # [C] bool, the row holds a bootstrap demonstration (or robot log)
     size: jnp.ndarray       # [] int32, rows holding episodes: min(count, C)
     count: jnp.ndarray      # [] int32, episodes ever written; the next row is count % C
 
@@ -40,14 +41,15 @@ def empty_cache(capacity: int, horizon: int) -> Cache:
         raise ValueError(f"empty_cache: capacity={capacity} and horizon={horizon} must be >= 1")
     z = lambda *s, dt=jnp.float32: jnp.zeros((capacity, *s), dt)  # noqa: E731
     return Cache(z(horizon, 13), z(horizon, 3), z(horizon, 8), z(horizon, dt=bool),
-                 z(dt=jnp.int32), z(2), jnp.int32(0), jnp.int32(0))
+                 z(dt=jnp.int32), z(2), z(dt=bool), jnp.int32(0), jnp.int32(0))
 
 
-def append(cache: Cache, traj: Trajectories, keep) -> Cache:
+def append(cache: Cache, traj: Trajectories, keep, demo: bool = False) -> Cache:
     """Write the episodes of `traj` [B, T, ...] where keep [B] is set; others are skipped.
 
     Kept episodes fill rows count % C, count+1 % C, ... in order. If one call keeps more than C
     episodes only the last C are written. Shapes must match the cache (checked at trace time).
+    `demo` marks the rows as demonstrations (the sampler's demo_fraction draws from them).
     """
     b = traj.obs.shape[0]
     if tuple(traj.obs.shape[1:]) != tuple(cache.obs.shape[1:]):
@@ -67,10 +69,10 @@ def append(cache: Cache, traj: Trajectories, keep) -> Cache:
     count = cache.count + n_new
     return Cache(put(cache.obs, traj.obs), put(cache.ball_vel, traj.ball_vel),
                  put(cache.actions, traj.actions), put(cache.valid, traj.valid),
-                 put(cache.hit_step, traj.hit_step), put(cache.goal, traj.goal),
+                 put(cache.hit_step, traj.hit_step), put(cache.goal, traj.goal), put(cache.demo, jnp.full(b, demo)),
                  jnp.minimum(count, cache.capacity).astype(jnp.int32), count.astype(jnp.int32))
 
 
-def add_episodes(cache: Cache, traj: Trajectories, table: Table, margin: float) -> Cache:
+def add_episodes(cache: Cache, traj: Trajectories, table: Table, margin: float, demo: bool = False) -> Cache:
     """Relabel `traj` and append the episodes worth training on (hit, landing within margin)."""
-    return append(cache, relabel(traj), keep_for_training(traj, table, margin))
+    return append(cache, relabel(traj), keep_for_training(traj, table, margin), demo)

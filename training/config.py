@@ -18,6 +18,12 @@ class TrainConfig:
     # opponent's half, in metres; the paper found goals beyond the table edges help near them.
     goal_margin: float = 0.3
     action_noise: float = 0.0            # b of the per-episode uniform action noise
+    # The acting policy is an exponential moving average of the trained weights with this
+    # decay per update (0: the weights themselves).
+    ema_decay: float = 0.0
+    # Each training window comes from a demonstration with probability at least this (0: rows
+    # uniform over the whole pool, as in the paper); see training.sampler.sample_episodes.
+    demo_fraction: float = 0.0
     min_std: float = 1e-3                # floor of normalization stds
 
     def __post_init__(self):
@@ -30,3 +36,7 @@ class TrainConfig:
         for name in ("goal_margin", "action_noise"):
             if getattr(self, name) < 0:
                 raise ValueError(f"TrainConfig.{name}={getattr(self, name)}, expected >= 0")
+        if not 0.0 <= self.demo_fraction <= 1.0:
+            raise ValueError(f"TrainConfig.demo_fraction={self.demo_fraction}, expected in [0, 1]")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ValueError(f"TrainConfig.ema_decay={self.ema_decay}, expected in [0, 1)")

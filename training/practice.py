@@ -18,7 +18,7 @@ from models.config import PolicyConfig
 from models.policy import make_policy, with_action_noise
 from training.cache import Cache, add_episodes
 from training.config import TrainConfig
-from training.update import TrainState, make_train_loop
+from training.update import TrainState, acting_params, make_train_loop
 from ttmjx import thrower
 from ttmjx.backends import Backend
 from ttmjx.env import uniform_goals
@@ -50,8 +50,15 @@ def practice_stats(traj: Trajectories, kept_before, kept_after) -> PracticeStats
 
 def round_keys(key):
     """Named keys of one SSP round, split once at the top."""
-    k_goal, k_throw, k_roll, k_train = jax.random.split(key, 4)
-    return k_goal, k_throw, k_roll, k_train
+    k_goal, k_roll, k_train = jax.random.split(key, 3)
+    return k_goal, k_roll, k_train
+
+
+# Throws are solved for this many rounds at once. Solving launch velocities is a sequential loop
+# through the flight (ttmjx.thrower): on a GPU it takes as long for 16k throws as for 1k
+# (0.57 s for 1,000 and 0.82 s for 16,000 on an H100, scripts/profile_practice.py).
+THROW_BLOCK = 16
+THROW_STREAM = 0x7E40   # fold-in tag that separates the throw keys from the per-round keys
 
 
 class Practice:
@@ -68,14 +75,26 @@ class Practice:
         self.train_loop = make_train_loop(pcfg, tcfg, train_steps) if train_steps > 0 else None
         self._append = jax.jit(lambda cache, traj: add_episodes(cache, traj, world.table, tcfg.goal_margin))
         self._goals = jax.jit(uniform_goals, static_argnums=(1, 2))  # (key, n, table)
+        self._sample_throws = jax.jit(lambda k: thrower.sample_throws(k, world, THROW_BLOCK * episodes))
+        self._bank = (None, None)
         self._fused = None
 
+    def round_throws(self, base_key, it: int) -> thrower.Throw:
+        """The M throws [M, ...] of practice round `it`, a function of (base_key, it) only (so a
+        resumed run replays them), drawn THROW_BLOCK rounds at a time."""
+        block, i = divmod(int(it), THROW_BLOCK)
+        if self._bank[0] != block:
+            k = jax.random.fold_in(jax.random.fold_in(base_key, THROW_STREAM), block)
+            self._bank = (block, self._sample_throws(k))
+        m = self.episodes
+        return jax.tree.map(lambda x: x[i * m:(i + 1) * m], self._bank[1])
+
     # -- the pieces ---------------------------------------------------------------------
-    def rollouts(self, params, key) -> Trajectories:
-        """M practice episodes of the ensemble (members play equal blocks) toward uniform goals."""
-        k_goal, k_throw, k_roll, _ = round_keys(key)
+    def rollouts(self, params, key, throws: thrower.Throw) -> Trajectories:
+        """M practice episodes of the ensemble (members play equal blocks) on `throws` [M]
+        toward uniform goals."""
+        k_goal, k_roll, _ = round_keys(key)
         goals = self._goals(k_goal, self.episodes, self.world.table)
-        throws = thrower.sample_throws(k_throw, self.world, self.episodes)
         return self.backend.rollout(self.policy, params, k_roll, throws, goals, members=self.tcfg.members)
 
     def absorb(self, cache: Cache, traj: Trajectories) -> tuple[Cache, PracticeStats]:
@@ -91,16 +110,17 @@ class Practice:
         return state, loss.mean(0)
 
     # -- one iteration ---------------------------------------------------------------------
-    def iteration(self, state: TrainState, cache: Cache, key, practise: bool = True):
-        """One SSP iteration -> (state, cache, loss [N], PracticeStats or None)."""
-        if practise and self.backend.name == "mjx":
+    def iteration(self, state: TrainState, cache: Cache, key, throws: thrower.Throw | None = None):
+        """One SSP iteration -> (state, cache, loss [N], PracticeStats or None). With `throws`
+        [M] (`round_throws`) the round practises on them; without, it only trains."""
+        if throws is not None and self.backend.name == "mjx":
             if self._fused is None:
                 self._fused = jax.jit(self._fused_iteration())
-            return self._fused(state, cache, key)
+            return self._fused(state, cache, key, throws)
         stats = None
-        if practise:
-            cache, stats = self.absorb(cache, self.rollouts(state.params, key))
-        k_train = round_keys(key)[3]
+        if throws is not None:
+            cache, stats = self.absorb(cache, self.rollouts(acting_params(state), key, throws))
+        k_train = round_keys(key)[2]
         state, loss = self.train(state, cache, k_train)
         return state, cache, loss, stats
 
@@ -109,11 +129,10 @@ class Practice:
         rollout = self.backend.rollout_fn(self.policy, members=self.tcfg.members)
         world, episodes = self.world, self.episodes
 
-        def fused(state, cache, key):
-            k_goal, k_throw, k_roll, k_train = round_keys(key)
+        def fused(state, cache, key, throws):
+            k_goal, k_roll, k_train = round_keys(key)
             goals = uniform_goals(k_goal, episodes, world.table)
-            throws = thrower.sample_throws(k_throw, world, episodes)
-            traj = rollout(state.params, k_roll, throws, goals)
+            traj = rollout(acting_params(state), k_roll, throws, goals)
             new = add_episodes(cache, traj, world.table, self.tcfg.goal_margin)
             stats = practice_stats(traj, cache.count, new.count)
             if self.train_loop is None:

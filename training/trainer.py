@@ -24,7 +24,7 @@ from training.cache import Cache, add_episodes, empty_cache
 from training.data import data_normalizer, keep_for_training, relabel
 from training.practice import Practice
 from training.runconfig import RunConfig, resolve_backend
-from training.update import TrainState, init_train_state
+from training.update import TrainState, acting_params, init_train_state
 from ttmjx import record
 from ttmjx.backends import Backend
 
@@ -149,7 +149,11 @@ class Run:
                 raise ValueError("none of the demonstrations hit and landed near the opponent's half: "
                                  "nothing to imitate")
             norm = data_normalizer(relabel(traj), cfg.policy.obs_size, keep, cfg.train.min_std)
-            cache = add_episodes(cache, jax.tree.map(jnp.asarray, traj), cfg.world.table, cfg.train.goal_margin)
+            # Demonstrations are marked (the sampler's demo_fraction); robot logs are practice.
+            for part, is_demo in ((demos, True), (logs, False)):
+                if part is not None:
+                    cache = add_episodes(cache, jax.tree.map(jnp.asarray, record.to_numpy(part)), cfg.world.table,
+                                         cfg.train.goal_margin, demo=is_demo)
             seen = traj.size
         else:  # GCSL: no demonstrations; normalize with a first look at the untrained policy's play
             norm = self._bootstrap_normalizer(key)
@@ -290,7 +294,8 @@ class Run:
                 t0 = time.perf_counter()
                 practise = it >= n_pre and cfg.practice
                 key = jax.random.fold_in(base, it)
-                state, cache, loss, stats = self.practice.iteration(ck.state, ck.cache, key, practise)
+                throws = self.practice.round_throws(base, it) if practise else None
+                state, cache, loss, stats = self.practice.iteration(ck.state, ck.cache, key, throws)
                 new_traj = cfg.episodes_per_ssp if practise else 0
                 ck = Checkpointed(state, cache, ck.key, Counters(
                     jnp.int32(it + 1), ck.counters.trajectories + new_traj,
@@ -302,7 +307,7 @@ class Run:
                 if stats is not None:
                     row.update({f"practice_{k}": float(v) for k, v in stats._asdict().items()})
                 if is_eval_iteration(cfg, it):
-                    row.update({f"eval_{k}": v for k, v in self.evaluate(state.params, jax.random.fold_in(base, 10**6 + it)).items()})
+                    row.update({f"eval_{k}": v for k, v in self.evaluate(acting_params(state), jax.random.fold_in(base, 10**6 + it)).items()})
                     last = row
                 if (it + 1) % cfg.checkpoint_every == 0 or it + 1 == stop_at or self._stop:
                     self.save(ck)

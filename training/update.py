@@ -21,9 +21,28 @@ from training.sampler import sample_subsequences
 
 
 class TrainState(NamedTuple):
-    params: PolicyParams    # leaves [N, ...]
+    params: PolicyParams    # leaves [N, ...] the weights the optimizer steps
     opt_state: Any          # optax state of params.net, leaves [N, ...]
     step: jnp.ndarray       # [] int32 updates taken
+    ema: PolicyParams       # leaves [N, ...] exponential moving average of params: the policy
+                            # that acts (practice, evaluation, export); = params if ema_decay = 0
+
+
+def acting_params(state: TrainState) -> PolicyParams:
+    """The parameters that play: the moving average (equal to `params` when ema_decay = 0)."""
+    return state.ema
+
+
+def updated_ema(decay: float, ema: PolicyParams, params: PolicyParams) -> PolicyParams:
+    """ema <- decay * ema + (1 - decay) * params (the normalizer is shared, never averaged).
+
+    A small-batch imitation loss is noisy: the landing point is sensitive to the stroke's timing,
+    and single Adam iterates swing by 15-20 points of success from one evaluation to the next
+    (docs/RESULTS.md); the average over the last ~1 / (1 - decay) steps does not."""
+    if decay == 0.0:
+        return params
+    net = jax.tree.map(lambda a, p: decay * a + (1.0 - decay) * p, ema.net, params.net)
+    return params._replace(net=net)
 
 
 def optimizer(tcfg: TrainConfig) -> optax.GradientTransformation:
@@ -34,13 +53,13 @@ def optimizer(tcfg: TrainConfig) -> optax.GradientTransformation:
 def init_train_state(key, pcfg: PolicyConfig, tcfg: TrainConfig, norm: Normalizer) -> TrainState:
     """`tcfg.members` freshly initialized members sharing the normalizer."""
     params = init_ensemble(key, pcfg, norm, tcfg.members)
-    return TrainState(params, jax.vmap(optimizer(tcfg).init)(params.net), jnp.int32(0))
+    return TrainState(params, jax.vmap(optimizer(tcfg).init)(params.net), jnp.int32(0), params)
 
 
 def member_update(pcfg: PolicyConfig, tcfg: TrainConfig, params: PolicyParams, opt_state, cache: Cache, key):
     """One member: sample a batch, one optimizer step -> (params, opt_state, loss [])."""
     batch = sample_subsequences(key, cache, tcfg.window, tcfg.batch_size,
-                                pcfg.input_frames, pcfg.obs_size)
+                                pcfg.input_frames, pcfg.obs_size, tcfg.demo_fraction)
     loss, grads = jax.value_and_grad(
         lambda net: policy_loss(pcfg, params._replace(net=net), batch))(params.net)
     updates, opt_state = optimizer(tcfg).update(grads, opt_state, params.net)
@@ -51,7 +70,7 @@ def _ensemble_update(pcfg, tcfg, state: TrainState, cache: Cache, key):
     keys = jax.random.split(key, ensemble_size(state.params))
     update = jax.vmap(lambda p, o, k: member_update(pcfg, tcfg, p, o, cache, k))
     params, opt_state, loss = update(state.params, state.opt_state, keys)
-    return TrainState(params, opt_state, state.step + 1), loss
+    return TrainState(params, opt_state, state.step + 1, updated_ema(tcfg.ema_decay, state.ema, params)), loss
 
 
 def make_train_step(pcfg: PolicyConfig, tcfg: TrainConfig):
