@@ -186,6 +186,12 @@ def test_robot_practice_closes_the_loop(trained, demo_dir, tmp_path):
     practice_kept = json.loads(open(os.path.join(resumed, "metrics.jsonl")).read().splitlines()[-1])["practice_kept"]
     assert int(after.cache.count) == int(before.count) + kept + int(practice_kept)
     assert int(after.counters.trajectories) == 328 + 4 + cfg.episodes_per_ssp
+    # Resuming again (one more round) with the same logs does not add them twice.
+    Run(dataclasses.replace(cfg, total_trajectories=400), progress=False).run(max_iterations=1)
+    again = final_params(resumed)
+    practice_kept = json.loads(open(os.path.join(resumed, "metrics.jsonl")).read().splitlines()[-1])["practice_kept"]
+    assert int(again.cache.count) == int(after.cache.count) + int(practice_kept)
+    assert int(again.counters.trajectories) == int(after.counters.trajectories) + cfg.episodes_per_ssp
 
 
 def ttmjx_cli(*args):

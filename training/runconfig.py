@@ -166,7 +166,7 @@ PRESET_NAMES = ("default", "lfp", "gcsl", *PRESETS)
 def from_json(d: dict) -> RunConfig:
     """Inverse of dataclasses.asdict for a RunConfig saved as JSON (config.json, checkpoints)."""
     from ttmjx.config import from_dict
-    d = dict(d)
+    d = {k: v for k, v in d.items() if k != "absorbed_data"}   # run bookkeeping, not config
     d["world"] = from_dict(World, d["world"])
     d["policy"] = PolicyConfig(**d["policy"])
     d["train"] = TrainConfig(**d["train"])

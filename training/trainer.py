@@ -133,6 +133,7 @@ class Run:
         self.metrics_path = os.path.join(cfg.run_dir, "metrics.jsonl")
         self._stop = False
         self._writer = None
+        self._absorbed: list[str] = []   # robot log directories already in the cache (absolute)
 
     # -- state -----------------------------------------------------------------------------
     def initial(self) -> Checkpointed:
@@ -140,6 +141,7 @@ class Run:
         key = jax.random.PRNGKey(cfg.seed)
         demos = load_demos(cfg, self.progress)
         logs = load_logs(cfg.data, cfg.world.horizon) if cfg.data else None
+        self._absorbed = [os.path.abspath(d) for d in cfg.data]
         data = [x for x in (demos, logs) if x is not None]
         cache = empty_cache(cfg.train.capacity, cfg.world.horizon)
         if data:
@@ -184,16 +186,23 @@ class Run:
 
     def absorb_logs(self, ck: Checkpointed) -> Checkpointed:
         """Robot practice closes the loop: relabel the logs in cfg.data, append them to the
-        cache and save, so the resumed run trains on them."""
+        cache (saved with the next checkpoint), so the resumed run trains on them. A directory
+        already absorbed by this run (recorded in its checkpoints) is not added twice."""
         cfg = self.cfg
-        logs = load_logs(cfg.data, cfg.world.horizon)
+        new = [d for d in cfg.data if os.path.abspath(d) not in self._absorbed]
+        if len(new) < len(cfg.data):
+            self.log(f"[ttmjx] already in the cache, not added again: "
+                     f"{', '.join(d for d in cfg.data if d not in new)}")
+        if not new:
+            return ck
+        logs = load_logs(new, cfg.world.horizon)
         cache = add_episodes(ck.cache, jax.tree.map(jnp.asarray, record.to_numpy(logs)), cfg.world.table,
                              cfg.train.goal_margin)
         self.log(f"[ttmjx] added {int(cache.count - ck.cache.count)} of {logs.size} logged episodes "
-                 f"from {', '.join(cfg.data)} to the cache")
-        ck = ck._replace(cache=cache, counters=ck.counters._replace(
+                 f"from {', '.join(new)} to the cache")
+        self._absorbed += [os.path.abspath(d) for d in new]
+        return ck._replace(cache=cache, counters=ck.counters._replace(
             trajectories=ck.counters.trajectories + logs.size))
-        return ck
 
     def template(self) -> Checkpointed:
         """Shapes and dtypes of a checkpoint (values unused)."""
@@ -206,8 +215,8 @@ class Run:
 
     def save(self, ck: Checkpointed):
         from training import checkpoint
-        checkpoint.save(self.ckpt_dir, int(ck.counters.iteration), ck, config_dict(self.cfg),
-                        keep=self.cfg.keep_checkpoints)
+        checkpoint.save(self.ckpt_dir, int(ck.counters.iteration), ck,
+                        {**config_dict(self.cfg), "absorbed_data": self._absorbed}, keep=self.cfg.keep_checkpoints)
 
     def restore(self) -> Checkpointed | None:
         from training import checkpoint
@@ -219,6 +228,7 @@ class Run:
         if diff:
             raise ValueError(f"{self.cfg.run_dir} holds a run with a different config (fields {sorted(diff)}); "
                              f"resume with the same config or choose a new run_dir")
+        self._absorbed = list(saved.get("absorbed_data", []))
         return ck
 
     # -- signals ---------------------------------------------------------------------------
@@ -342,7 +352,8 @@ def _postfix(row: dict) -> str:
 
 
 # Fields that may differ when resuming (they do not change the computation).
-RESUME_MAY_CHANGE = {"run_dir", "data", "keep_checkpoints", "total_trajectories", "checkpoint_every"}
+RESUME_MAY_CHANGE = {"run_dir", "data", "keep_checkpoints", "total_trajectories", "checkpoint_every",
+                     "absorbed_data"}
 
 
 def config_dict(cfg: RunConfig) -> dict:
