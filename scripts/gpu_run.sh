@@ -2,7 +2,7 @@
 # Runs on the lent GPU machine (device tool) from the repository root. Installs the carried
 # wheels (../shared/gpu/wheelhouse.sh builds them into .wheels), then runs the named steps,
 # writing JSON results and small artefacts under $OUT.
-#   bash scripts/gpu_run.sh bench demos train:PRESET:SECONDS ...
+#   bash scripts/gpu_run.sh bench demos ...      (training runs: scripts/gpu_train.sh)
 set -uo pipefail
 python3 -m pip install -q --no-deps --no-index .wheels/*.whl 2>&1 | grep -v -i warn | tail -2
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
@@ -19,11 +19,6 @@ for step in "$@"; do
       rm -rf runs/gpu_demos_any
       tt demos --source scripted --distribution any --n 16384 --backend mjx --out runs/gpu_demos_any --json | tail -1 | tee "$OUT/demos_mjx.json"
       tt plot-landings runs/gpu_demos_any --out "$OUT/landings_any_gpu.png" ;;
-    train:*)
-      IFS=: read -r _ preset secs extra <<<"$step"
-      timeout -s TERM "$secs" python3 -m ttmjx.cli train --preset "$preset" --json $extra 2>&1 | grep -v "it/s\|traj/s" | tail -3
-      d=$(ls -d runs/$preset* | head -1); cp "$d/metrics.jsonl" "$OUT/${preset}_metrics.jsonl" 2>/dev/null
-      cp "$d/learning_curve.png" "$OUT/${preset}_curve.png" 2>/dev/null; tail -1 "$d/metrics.jsonl" ;;
     *) python3 - <<<"$step" ;;
   esac
 done

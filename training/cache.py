@@ -22,7 +22,7 @@ class Cache(NamedTuple):
     valid: jnp.ndarray      # [C, T] bool, a prefix of each row
     hit_step: jnp.ndarray   # [C] int32
     goal: jnp.ndarray       # [C, 2] relabeled goal
-    demo: jnp.ndarray       # [C] bool, the row holds a bootstrap demonstration (or robot log)
+    demo: jnp.ndarray       # [C] bool, the row holds a bootstrap demonstration (robot logs and practice: False)
     size: jnp.ndarray       # [] int32, rows holding episodes: min(count, C)
     count: jnp.ndarray      # [] int32, episodes ever written; the next row is count % C
 
