@@ -49,7 +49,7 @@ def session_goals(spec: str, n: int, seed: int = 0):
         from eval.metrics import FIVE_GOALS
         g = np.array([FIVE_GOALS[k] for k in FIVE_GOALS for _ in range(n)], np.float32)
     elif spec == "uniform":
-        from ttmjx.config import Table, opponent_half
+        from ttmjx.world.config import Table, opponent_half
         (x0, x1), (y0, y1) = opponent_half(Table())
         u = np.random.default_rng(seed).uniform(size=(n, 2))
         g = np.stack([x0 + u[:, 0] * (x1 - x0), y0 + u[:, 1] * (y1 - y0)], 1).astype(np.float32)

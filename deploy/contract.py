@@ -11,7 +11,7 @@ import dataclasses
 
 import numpy as np
 
-from ttmjx.config import JOINT_NAMES, Robot, World
+from ttmjx.world.config import JOINT_NAMES, Robot, World
 
 # The real robot has no ball velocity (paper, Policy architecture): 13-value frames only.
 REAL_OBS_SIZE = 13

@@ -1,6 +1,6 @@
 """One robot episode as the project's trajectory record plus the runner's own arrays.
 
-On disk (`save_episode`): `<name>.npz` + `<name>.meta.json` written by ttmjx.record.save (B = 1)
+On disk (`save_episode`): `<name>.npz` + `<name>.meta.json` written by ttmjx.world.record.save (B = 1)
 and `<name>.deploy.npz` beside them with the arrays below (plain numeric, loaded without pickle).
 
 Per tick (T = contract horizon):
@@ -24,8 +24,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ttmjx import record
-from ttmjx.record import Trajectories
+from ttmjx.world import record
+from ttmjx.world.record import Trajectories
 
 EXTRAS_SUFFIX = ".deploy.npz"
 
@@ -109,7 +109,7 @@ class EpisodeLog:
 
 
 def save_episode(directory: str, name: str, ep: Episode) -> str:
-    """Write the record (ttmjx.record.save) and the extras beside it; refuses to overwrite."""
+    """Write the record (ttmjx.world.record.save) and the extras beside it; refuses to overwrite."""
     extras_path = os.path.join(directory, name + EXTRAS_SUFFIX)
     if os.path.exists(extras_path):
         raise FileExistsError(f"{extras_path} already exists; refusing to overwrite an episode log")

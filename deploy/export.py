@@ -40,7 +40,7 @@ import numpy as np
 
 from deploy.contract import (ROBOT_MODEL_ID, Contract, contract_from_dict, contract_to_dict)
 from deploy.numpy_policy import ACTION_SIZE, ExportedPolicy, PolicySpec, check_tensors
-from ttmjx.config import JOINT_NAMES, Table, World, opponent_half, to_dict
+from ttmjx.world.config import JOINT_NAMES, Table, World, opponent_half, to_dict
 
 EXPORT_FORMAT = "ttmjx-policy-export"
 EXPORT_VERSION = 1
@@ -448,7 +448,7 @@ def load_export(directory: str, expected_robot: str = ROBOT_MODEL_ID,
 
 def export_world(doc: dict) -> World:
     """The World config an export was trained in (contract 'world'; defaults if absent)."""
-    from ttmjx.config import from_dict
+    from ttmjx.world.config import from_dict
     return from_dict(World, doc["world"]) if isinstance(doc.get("world"), dict) else World()
 
 
@@ -513,7 +513,7 @@ def params_from_checkpoint(path: str, step: int | None = None):
     from models.normalizer import Normalizer
     from models.policy import PolicyParams
     from training import checkpoint
-    from ttmjx.config import from_dict
+    from ttmjx.world.config import from_dict
     directory = os.path.abspath(checkpoint_dir(path))
     saved = checkpoint.steps(directory)
     step = saved[-1] if step is None else int(step)

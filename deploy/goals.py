@@ -10,13 +10,13 @@ import os
 
 import numpy as np
 
-from ttmjx.config import Table, opponent_half
+from ttmjx.world.config import Table, opponent_half
 
 
 def check_goals(goals) -> np.ndarray:
     """[N, 2] finite float32 goals (N >= 1); ValueError names the problem.
 
-    (ttmjx.env.check_goals does the same but imports JAX; the runner stays numpy-only.)
+    (ttmjx.world.env.check_goals does the same but imports JAX; the runner stays numpy-only.)
     """
     try:
         g = np.asarray(goals, dtype=np.float64)

@@ -83,7 +83,7 @@ def frame_of(joints: np.ndarray, ball: np.ndarray, goal: np.ndarray) -> np.ndarr
 
 class FrameStack:
     """The last k frames [k, size], oldest first; the first push fills every row (the padding
-    of ttmjx.record.frame_stack)."""
+    of ttmjx.world.record.frame_stack)."""
 
     def __init__(self, k: int, size: int = 13):
         self.frames = np.zeros((k, size), np.float32)

@@ -1,7 +1,7 @@
 """The simulated station: the robot, the ball tracker and the clock of deploy/hardware.py on
 MuJoCo C physics, so the robot runner plays whole episodes exactly as against hardware.
 
-* Physics: `ttmjx.scene.model(cfg)` (MuJoCo's ellipsoid fluid model flies the ball) stepped at
+* Physics: `ttmjx.world.scene.model(cfg)` (MuJoCo's ellipsoid fluid model flies the ball) stepped at
   cfg.physics_dt, lazily: every call into the station (a joint read, a command, a tracker read)
   first advances the physics to `clock.now()`. The clock is injectable: `SimClock` (fake time
   that jumps on sleep_until, so an episode runs much faster than real time; optionally charging
@@ -11,12 +11,12 @@ MuJoCo C physics, so the robot runner plays whole episodes exactly as against ha
   a control step). Joint feedback is sampled every 1/joint_hz s and delivered
   joint_latency_s late, timestamped on the clock's time base. Every command is logged (time,
   target, true joints), as deploy.fakes.FakeRobot does, for deploy.safety.count_violations.
-* Ball: launched by `ttmjx.thrower.sample_throws` (throw_in); the tracker samples it every
+* Ball: launched by `ttmjx.world.thrower.sample_throws` (throw_in); the tracker samples it every
   1/tracker_hz s (125 Hz), timestamped, delivered tracker_latency_s late. Before a launch and
   after `finish_throw` the ball is parked out of sight (the tracker reports nothing). The room
   keeps a ball in view (a real lab is enclosed): it bounces off the floor and stops at barriers
   (|x| = room_x, |y| = room_y), so a missed ball does not vanish from the tracker mid-episode.
-* Events (`ThrowEvents`), from the MuJoCo contacts of the ball, with the rules of ttmjx.env:
+* Events (`ThrowEvents`), from the MuJoCo contacts of the ball, with the rules of ttmjx.world.env:
   hit = first ball-paddle contact; bounce_own = a table contact on the robot's half before the
   hit; net = any net contact; landing = the first table contact after the hit, or where a hit
   ball falls through table height outside the table; on_opponent = that table contact has x > 0;
@@ -45,8 +45,8 @@ from deploy.episode_log import Episode
 from deploy.goals import check_goals
 from deploy.runner import Runner, RunnerConfig
 from deploy.safety import count_violations
-from ttmjx import record, scene
-from ttmjx.config import World
+from ttmjx.world import record, scene
+from ttmjx.world.config import World
 
 # Ball parked out of sight between throws (no contacts, the tracker reports nothing).
 PARK = np.array([0.0, 0.0, -5.0])
@@ -270,7 +270,7 @@ class SimStation:
         if self._throws is None or self._throw_i >= self.throws_per_batch:
             import jax
 
-            from ttmjx.thrower import sample_throws
+            from ttmjx.world.thrower import sample_throws
             key = jax.random.fold_in(jax.random.key(self.seed), self._batch)
             th = sample_throws(key, self.cfg, self.throws_per_batch)
             self._throws = jax.tree.map(lambda x: np.asarray(x, np.float64), th)

@@ -24,7 +24,7 @@ def cmd_eval(args):
     import dataclasses
     import jax
     from eval.evaluate import evaluate_five, evaluate_params
-    from ttmjx.backends import Backend
+    from ttmjx.world.backends import Backend
     from ttmjx.cli import _print
     from training.runconfig import resolve_backend
     from training.update import acting_params
@@ -58,7 +58,7 @@ def cmd_eval(args):
 
 
 def register(sub, common):
-    from ttmjx.config import THROW_DISTRIBUTIONS
+    from ttmjx.world.config import THROW_DISTRIBUTIONS
     sp = sub.add_parser("eval", help="goal-reaching metrics of a run or checkpoint")
     sp.add_argument("run", help="run directory (or its checkpoints/ directory)")
     sp.add_argument("--distribution", choices=THROW_DISTRIBUTIONS, default=None,

@@ -10,9 +10,9 @@ import numpy as np
 from eval.metrics import five_goals, goal_metrics, per_goal_metrics, uniform_goals
 from models.config import PolicyConfig
 from models.policy import ensemble_size, make_policy
-from ttmjx import thrower
-from ttmjx.backends import Backend
-from ttmjx.config import World
+from ttmjx.world import thrower
+from ttmjx.world.backends import Backend
+from ttmjx.world.config import World
 
 
 def rollout_goals(world: World, pcfg: PolicyConfig, params, backend: Backend, key, goals, members=None):

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ttmjx import env
-from ttmjx.config import Table
+from ttmjx.world import env
+from ttmjx.world.config import Table
 
 # The five evaluation goals (the paper's Figure 1c shows five targets spread over the
 # opponent's half; its exact coordinates are not published). Ours, in the table frame

@@ -28,8 +28,8 @@ def timed(name, fn, *args, reps=3):
 
 def main(name):
     import dataclasses
-    from ttmjx import thrower
-    from ttmjx.env import uniform_goals
+    from ttmjx.world import thrower
+    from ttmjx.world.env import uniform_goals
     cfg = dataclasses.replace(preset(name), demos=256, run_dir=f"/tmp/prof_{name}")
     run = Run(cfg, progress=False)
     ck = run.initial()

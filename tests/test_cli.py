@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from ttmjx import record
+from ttmjx.world import record
 
 
 def ttmjx(*args, timeout=600):

@@ -15,8 +15,8 @@ from deploy import (FAULTS, Contract, FrameStack, Mode, NoBallError, Runner, Run
                     goals_from_arg, check_goal_region, interpolate, limits_from_contract,
                     load_episode, parse_goals, safe_target)
 from deploy.fakes import FakeClock, FakeRobot, FakeTracker, FollowBallPolicy
-from ttmjx import record
-from ttmjx.config import World
+from ttmjx.world import record
+from ttmjx.world.config import World
 
 CONTRACT = Contract()                      # 20 Hz, k = 8, 1.6 s -> 32 ticks
 DT = CONTRACT.dt

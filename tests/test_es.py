@@ -1,4 +1,4 @@
-"""The ES demonstration source (ttmjx/es.py): the optimiser, the weights file, the shipped policy."""
+"""The ES demonstration source (ttmjx/tools/es.py): the optimiser, the weights file, the shipped policy."""
 import os
 import zipfile
 
@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 from jax.flatten_util import ravel_pytree
 
-from ttmjx import backends, es, env
-from ttmjx.config import World
-from ttmjx.thrower import Throw
+from ttmjx.world import backends, env
+from ttmjx.tools import es
+from ttmjx.world.config import World
+from ttmjx.world.thrower import Throw
 
 CFG = World().with_throws("narrow")
 

@@ -19,7 +19,7 @@ from deploy.export import (CONTRACT_FILE, GOLDEN_FILE, WEIGHTS_FILE, export, par
 from deploy.numpy_policy import ExportedPolicy, PolicySpec, benchmark, tensor_shapes
 from models import (Normalizer, PolicyConfig, PolicyParams, init_ensemble, init_params, make_policy,
                     member)
-from ttmjx.config import World
+from ttmjx.world.config import World
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LSTM = PolicyConfig(kind="lstm", hidden=32, layers=2)
@@ -311,7 +311,7 @@ def test_export_from_a_checkpoint_through_the_cli(tmp_path):
     from training.config import TrainConfig
     from training.update import init_train_state
     from ttmjx.cli import main
-    from ttmjx.config import to_dict
+    from ttmjx.world.config import to_dict
     params = random_params(MLP, seed=8, members=2)
     state = init_train_state(jax.random.key(0), MLP, TrainConfig(members=2), member(params, 0).norm)._replace(params=params, ema=params)
     world = World(frame_stack=4)

@@ -10,10 +10,10 @@ from models import (Normalizer, PolicyConfig, ensemble_size, identity_normalizer
                     make_policy, member, normalizer_from_data, observation_vector,
                     predict_sequence, with_action_noise)
 from models.normalizer import denormalize_actions
-from ttmjx.record import frame_stack
+from ttmjx.world.record import frame_stack
 
 
-class Obs(NamedTuple):     # the fields of ttmjx.env.Obs the policies read
+class Obs(NamedTuple):     # the fields of ttmjx.world.env.Obs the policies read
     frame: jnp.ndarray     # [13] or [16] (World.ball_velocity_obs)
     ball_vel: jnp.ndarray  # [3]
     frames: jnp.ndarray    # [k, 13] or [k, 16]

@@ -1,20 +1,21 @@
 """Ball physics calibration on both backends, MEASURED from simulated trajectories.
 
-* air: MJX with ttmjx.ballphysics forces flies 100 random throws (with and without spin) within
+* air: MJX with ttmjx.world.ballphysics forces flies 100 random throws (with and without spin) within
   1 cm of MuJoCo C's ellipsoid fluid model after 1 s;
 * restitution for normal impacts at 2-10 m/s, every arrival phase: table 0.86-0.92, paddle
   0.72-0.82 (PHYSICS.md); the table COR of real thrower throws too;
 * no tunnelling through table, paddle or net at 20 m/s, and the net never lets a ball through.
 
-Bands come from PHYSICS.md / the issue; never widen them to pass: tune ttmjx.config.Contacts.
+Bands come from PHYSICS.md / the issue; never widen them to pass: tune ttmjx.world.config.Contacts.
 Every MJX experiment runs as batches of calibration.MJX_BATCH through one jit-compiled program
 (module fixtures), so the file compiles MJX once (persistent cache: tests/conftest.py).
 """
 import numpy as np
 import pytest
 
-from ttmjx import backends, calibration as cal
-from ttmjx.config import World
+from ttmjx.world import backends
+from ttmjx.tools import calibration as cal
+from ttmjx.world.config import World
 
 CFG = World()
 TABLE_BAND = (0.86, 0.92)     # ball dropped from 30.5 cm bounces ~23 cm (PHYSICS.md)

@@ -1,5 +1,5 @@
 """The simulated station (MuJoCo C physics behind the runner's hardware interfaces): sampling and
-timestamps, events by the rules of ttmjx.env, whole episodes of an exported policy through the
+timestamps, events by the rules of ttmjx.world.env, whole episodes of an exported policy through the
 runner, and logs that load as Trajectories and relabel."""
 from __future__ import annotations
 
@@ -17,8 +17,8 @@ from deploy.export import export
 from deploy.station import SimClock, SimStation, complete_episode, play, run_sim
 from models import PolicyConfig, identity_normalizer, init_params
 from training.data import relabel
-from ttmjx import env, record
-from ttmjx.config import World
+from ttmjx.world import env, record
+from ttmjx.world.config import World
 
 CFG = World()
 HOME = np.asarray(CFG.robot.home)
@@ -69,7 +69,7 @@ def test_station_implements_the_hardware_interfaces_with_timestamps():
 
 
 def _env_events(st, ev):
-    """ttmjx.env.update_events over the station's per-step trace of one throw."""
+    """ttmjx.world.env.update_events over the station's per-step trace of one throw."""
     ball = jnp.asarray(np.stack([b for b, _ in st.trace]), jnp.float32)
     paddle = jnp.asarray(np.stack([p for _, p in st.trace]), jnp.float32)
     prev = jnp.asarray(np.r_[ev.launch_pos, ev.launch_vel], jnp.float32)

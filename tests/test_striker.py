@@ -1,4 +1,4 @@
-"""The scripted demonstrator (ttmjx/striker.py) on the MuJoCo C backend: its models against the
+"""The scripted demonstrator (ttmjx/tools/striker.py) on the MuJoCo C backend: its models against the
 scene (kinematics, contacts, ball flight), the policy contract (pure JAX, goal ignored, commands
 within the limits), and its quality on real throws (hit and return rates, landing coverage)."""
 from collections import namedtuple
@@ -9,8 +9,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from ttmjx import backends, env, scene, striker, thrower
-from ttmjx.config import World, opponent_half
+from ttmjx.world import backends, env, scene, thrower
+from ttmjx.tools import striker
+from ttmjx.world.config import World, opponent_half
 
 CFG = World()
 N = 64                      # throws per distribution in the quality tests

@@ -7,8 +7,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from ttmjx import scene, thrower
-from ttmjx.config import THROW_DISTRIBUTIONS, World
+from ttmjx.world import scene, thrower
+from ttmjx.world.config import THROW_DISTRIBUTIONS, World
 
 N = 60                 # throws per distribution (one compiled sampler serves all of them)
 SEED = 7

@@ -12,7 +12,8 @@ import jax
 import numpy as np
 import pytest
 
-from ttmjx import demos, record
+from ttmjx.world import record
+from ttmjx.tools import demos
 from training import checkpoint, runconfig
 from training.trainer import Run, is_eval_iteration, practice_iterations, pretrain_iterations
 from training.update import acting_params

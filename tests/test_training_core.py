@@ -9,8 +9,8 @@ import pytest
 
 from models import (Normalizer, PolicyConfig, ensemble_size, identity_normalizer, init_params, member,
                     predict_sequence)
-from ttmjx.config import Table
-from ttmjx.record import Trajectories, frame_stack
+from ttmjx.world.config import Table
+from ttmjx.world.record import Trajectories, frame_stack
 from training import (Batch, TrainConfig, add_episodes, append, data_normalizer, empty_cache,
                       init_train_state, keep_for_training, make_train_loop, make_train_step,
                       masked_mse, member_update, policy_loss, relabel, sample_subsequences)

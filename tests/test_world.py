@@ -8,8 +8,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from ttmjx import backends, env, record
-from ttmjx.config import World
+from ttmjx.world import backends, env, record
+from ttmjx.world.config import World
 
 Throw = namedtuple("Throw", "launch_pos launch_vel launch_spin aim")
 CFG = World()
@@ -23,7 +23,7 @@ def hand_throws(pos, vel, spin=None):
 
 def paddle_pose(cfg=CFG):
     """Blade centre and face normal at the exact home pose (no perturbation)."""
-    from ttmjx import scene
+    from ttmjx.world import scene
     m = scene.model(cfg)
     d = mujoco.MjData(m)
     lay = env.layout(m)
@@ -199,7 +199,7 @@ def paddle_pose_at_reset(backend, key, n):
     k_reset = jax.random.split(key, 3)[0]
     dummy = hand_throws([[1.7, 0.0, 0.95]] * n, [[-6.5, 0.0, 2.0]] * n)
     s = backend.reset(k_reset, dummy, np.zeros((n, 2)))
-    from ttmjx import scene
+    from ttmjx.world import scene
     m = scene.model(CFG)
     d = mujoco.MjData(m)
     sid = m.site("paddle").id

@@ -11,8 +11,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 
 from training.data import keep_for_training, relabel
-from ttmjx.config import Table
-from ttmjx.record import Trajectories
+from ttmjx.world.config import Table
+from ttmjx.world.record import Trajectories
 
 
 class Cache(NamedTuple):

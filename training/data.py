@@ -6,8 +6,8 @@ import numpy as np
 
 from models.normalizer import Normalizer, normalizer_from_data
 from models.policy import observation_vector
-from ttmjx.config import Table, opponent_half
-from ttmjx.record import Trajectories
+from ttmjx.world.config import Table, opponent_half
+from ttmjx.world.record import Trajectories
 
 OBS_GOAL = slice(11, 13)   # the goal columns: the last 2 of every 13-value frame
 

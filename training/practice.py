@@ -19,11 +19,11 @@ from models.policy import make_policy, with_action_noise
 from training.cache import Cache, add_episodes
 from training.config import TrainConfig
 from training.update import TrainState, acting_params, make_train_loop
-from ttmjx import thrower
-from ttmjx.backends import Backend
-from ttmjx.env import uniform_goals
-from ttmjx.config import World
-from ttmjx.record import Trajectories
+from ttmjx.world import thrower
+from ttmjx.world.backends import Backend
+from ttmjx.world.env import uniform_goals
+from ttmjx.world.config import World
+from ttmjx.world.record import Trajectories
 
 
 class PracticeStats(NamedTuple):
@@ -55,7 +55,7 @@ def round_keys(key):
 
 
 # Throws are solved for this many rounds at once. Solving launch velocities is a sequential loop
-# through the flight (ttmjx.thrower): on a GPU it takes as long for 16k throws as for 1k
+# through the flight (ttmjx.world.thrower): on a GPU it takes as long for 16k throws as for 1k
 # (0.57 s for 1,000 and 0.82 s for 16,000 on an H100, scripts/profile_practice.py).
 THROW_BLOCK = 16
 THROW_STREAM = 0x7E40   # fold-in tag that separates the throw keys from the per-round keys

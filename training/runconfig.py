@@ -10,7 +10,7 @@ from typing import Literal
 
 from models.config import PolicyConfig
 from training.config import TrainConfig
-from ttmjx.config import World
+from ttmjx.world.config import World
 
 
 @dataclasses.dataclass(frozen=True)
@@ -165,7 +165,7 @@ PRESET_NAMES = ("default", "lfp", "gcsl", *PRESETS)
 
 def from_json(d: dict) -> RunConfig:
     """Inverse of dataclasses.asdict for a RunConfig saved as JSON (config.json, checkpoints)."""
-    from ttmjx.config import from_dict
+    from ttmjx.world.config import from_dict
     d = {k: v for k, v in d.items() if k != "absorbed_data"}   # run bookkeeping, not config
     d["world"] = from_dict(World, d["world"])
     d["policy"] = PolicyConfig(**d["policy"])

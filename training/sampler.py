@@ -67,7 +67,7 @@ def sample_subsequences(key, cache: Cache, k: int, batch_size: int,
 
     Episodes are drawn by `sample_episodes`; each window contains the episode's hit step. Each step's
     input is the last `frame_stack` frames, padded at the episode start by repeating the first
-    frame (as `ttmjx.record.frame_stack`). Steps past the episode end (or past T) are padding
+    frame (as `ttmjx.world.record.frame_stack`). Steps past the episode end (or past T) are padding
     with mask False. The cache must not be empty (size 0 samples row 0).
     """
     t = cache.horizon

@@ -25,8 +25,8 @@ from training.data import data_normalizer, keep_for_training, relabel
 from training.practice import Practice
 from training.runconfig import RunConfig, resolve_backend
 from training.update import TrainState, acting_params, init_train_state
-from ttmjx import record
-from ttmjx.backends import Backend
+from ttmjx.world import record
+from ttmjx.world.backends import Backend
 
 
 class Counters(NamedTuple):
@@ -80,7 +80,7 @@ def load_demos(cfg: RunConfig, progress: bool) -> record.Trajectories | None:
         if traj.size < cfg.demos:
             raise ValueError(f"{cfg.demo_dir} holds {traj.size} demonstrations, the run asks for demos={cfg.demos}")
         return jax.tree.map(lambda x: x[:cfg.demos], traj)
-    from ttmjx import demos
+    from ttmjx.tools import demos
     path = os.path.join(cfg.run_dir, "demos")
     if os.path.exists(os.path.join(path, "trajectories.npz")):
         return record.load(path)[0]
@@ -168,8 +168,8 @@ class Run:
         of the untrained policy, action statistics from the robot's home pose and ranges."""
         from models.normalizer import identity_normalizer, normalizer_from_data
         from models.policy import init_params, make_policy, observation_vector
-        from ttmjx.env import uniform_goals
-        from ttmjx import thrower
+        from ttmjx.world.env import uniform_goals
+        from ttmjx.world import thrower
         cfg = self.cfg
         params = init_params(jax.random.fold_in(key, 2), cfg.policy, identity_normalizer(cfg.policy.obs_size))
         n = 64

@@ -17,7 +17,7 @@ def _print(args, obj: dict, text: str | None = None):
 
 
 def _world(args):
-    from ttmjx.config import World
+    from ttmjx.world.config import World
     kw = {}
     if getattr(args, "control_hz", None):
         kw["control_hz"] = args.control_hz
@@ -29,7 +29,7 @@ def _world(args):
 
 
 def cmd_throw(args):
-    from ttmjx import thrower
+    from ttmjx.world import thrower
     if args.n < 1:
         raise ValueError(f"--n must be >= 1, got {args.n}")
     rep = thrower.throw_report(_world(args), args.n, args.seed)
@@ -40,27 +40,27 @@ def cmd_throw(args):
 
 
 def cmd_bench(args):
-    from ttmjx import bench
+    from ttmjx.tools import bench
     out = bench.bench(_world(args), args.backend, args.batch, args.threads)
     text = "\n".join(f"{k:32s} {v:,.1f}" if isinstance(v, float) else f"{k:32s} {v}" for k, v in out.items())
     _print(args, out, text)
 
 
 def cmd_render(args):
-    from ttmjx import render
+    from ttmjx.tools import render
     path = render.render_throws(_world(args), args.out, args.n, args.seed, source=args.source)
     _print(args, {"video": path}, f"wrote {path}")
 
 
 def cmd_sim(args):
     """A short simulation run: throws on the chosen backend with the scripted striker."""
-    from ttmjx import simrun
+    from ttmjx.tools import simrun
     out = simrun.run(_world(args), args.backend, args.n, args.seed)
     _print(args, out, "\n".join(f"{k:16s} {v}" for k, v in out.items()))
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from ttmjx.config import CONTROL_RATES, THROW_DISTRIBUTIONS
+    from ttmjx.world.config import CONTROL_RATES, THROW_DISTRIBUTIONS
     p = argparse.ArgumentParser(prog="ttmjx", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 
 def cmd_demos(args):
-    from ttmjx import demos
+    from ttmjx.tools import demos
     from ttmjx.cli import _print, _world
     out = demos.make_dataset(_world(args), args.source, args.n, args.seed, args.out, args.backend,
                              progress=not args.json)
@@ -12,7 +12,7 @@ def cmd_demos(args):
 
 
 def cmd_plot(args):
-    from ttmjx import demos
+    from ttmjx.tools import demos
     from ttmjx.cli import _print
     path = demos.plot_landings(args.dir, args.out)
     _print(args, {"plot": path}, f"wrote {path}")

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ttmjx.config import Ball
+from ttmjx.world.config import Ball
 
 
 def air_force_torque(vel, angvel, ball: Ball):

@@ -1,7 +1,7 @@
 """Two physics backends for one task, and the batched rollout that produces Trajectories.
 
 * MJX: the whole rollout (policy, clipping, physics substeps, events) is one jit-compiled,
-  vmapped `lax.scan`; the air forces MJX lacks come from ttmjx.ballphysics via xfrc_applied.
+  vmapped `lax.scan`; the air forces MJX lacks come from ttmjx.world.ballphysics via xfrc_applied.
 * MuJoCo C: physics in batched multi-threaded `mujoco.rollout` calls, one control step at a time
   (MuJoCo's own ellipsoid fluid model flies the ball); the policy and the task logic run as
   jit-compiled, vmapped JAX between the calls. The default on a CPU, where MJX is ~200x slower.
@@ -17,9 +17,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from ttmjx import ballphysics, env, scene
-from ttmjx.config import World
-from ttmjx.record import Trajectories
+from ttmjx.world import ballphysics, env, scene
+from ttmjx.world.config import World
+from ttmjx.world.record import Trajectories
 
 BACKENDS = ("c", "mjx")
 

@@ -65,7 +65,7 @@ class Contacts:
     its COR depends on where the ball is at the first step inside the surface (the arrival
     phase); the stiffnesses sit at a measured minimum of that spread, the dampings centre the
     band, and both are checked by MEASURED restitution over speeds and arrival phases
-    (ttmjx/calibration.py, tests/test_physics.py). Lower stiffness would bounce more evenly
+    (ttmjx/tools/calibration.py, tests/test_physics.py). Lower stiffness would bounce more evenly
     but lets a 20 m/s ball sink past the mid-plane of the 3 cm table and tunnel.
     """
     # Measured (C and MJX, normal impacts 2-10 m/s x 16 arrival phases): COR 0.869-0.912,
@@ -125,7 +125,7 @@ class Robot:
 
 @dataclasses.dataclass(frozen=True)
 class Throws:
-    """The three throw distributions of the paper; `name` picks one (ttmjx/thrower.py).
+    """The three throw distributions of the paper; `name` picks one (ttmjx/world/thrower.py).
 
     narrow: one launch position, narrow speed range, forehand landing region.
     any:    wide launch positions and velocities (~5-9 m/s), landing anywhere on the robot's half.
@@ -159,7 +159,7 @@ class Throws:
     # Horizontal distance from the launch point to the aim along the yawed line: a fixed-speed,
     # fixed-site thrower lands deeper on the robot's half the closer it stands to the net.
     varied_distance: tuple = (2.5, 2.85)
-    # Launch solve (ttmjx/thrower.py).
+    # Launch solve (ttmjx/world/thrower.py).
     candidates: int = 16                      # most candidates drawn per throw; first valid kept
     newton_iters: int = 5
     max_pitch: float = 0.6                    # rad: low arcs only (sets the slowest `any` speed)

@@ -43,9 +43,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttmjx import backends, ballphysics
-from ttmjx.config import World
-from ttmjx.env import Obs
+from ttmjx.world import backends, ballphysics
+from ttmjx.world.config import World
+from ttmjx.world.env import Obs
 
 GRAVITY = 9.81
 
@@ -308,7 +308,7 @@ def measure_surface(cfg: World, surface: str, phases: int = 6) -> Surface:
     offsets. surface: "table" (its top) or "paddle" (the blade held facing +x)."""
     import mujoco
 
-    from ttmjx import scene
+    from ttmjx.world import scene
     if surface not in ("table", "paddle"):
         raise ValueError(f"surface must be 'table' or 'paddle', got {surface!r}")
     m = mujoco.MjModel.from_xml_string(scene.mjcf(cfg, fluid=False))   # a copy: gravity goes off

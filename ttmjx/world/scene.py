@@ -13,7 +13,7 @@ import functools
 import mujoco
 import numpy as np
 
-from ttmjx.config import JOINT_NAMES, World
+from ttmjx.world.config import JOINT_NAMES, World
 
 
 def _v(*xs) -> str:
@@ -49,7 +49,7 @@ def mjcf(cfg: World, fluid: bool = True, inertia: tuple | None = None) -> str:
     """MJCF text of the scene.
 
     fluid=True uses MuJoCo's ellipsoid fluid model for the ball (C backend). The MJX model is
-    built with fluid=False (zero air density) and ttmjx.ballphysics applies the same forces.
+    built with fluid=False (zero air density) and ttmjx.world.ballphysics applies the same forces.
     """
     t, b, c, r = cfg.table, cfg.ball, cfg.contacts, cfg.robot
     m = r.link_masses

@@ -14,14 +14,15 @@ import jax  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ttmjx import backends, env, scene  # noqa: E402
-from ttmjx.config import World  # noqa: E402
-from ttmjx.record import Trajectories  # noqa: E402
+from ttmjx.world import backends, env
+from ttmjx.world import scene  # noqa: E402
+from ttmjx.world.config import World  # noqa: E402
+from ttmjx.world.record import Trajectories  # noqa: E402
 
 
 def policy_for(cfg: World, source: str) -> backends.Policy:
     if source == "scripted":
-        from ttmjx import striker
+        from ttmjx.tools import striker
         return striker.striker_policy(cfg)
     if source == "hold":
         return backends.hold_policy()
@@ -54,7 +55,7 @@ def frames_of(cfg: World, traj: Trajectories, width: int = 480, height: int = 32
 def render_throws(cfg: World, path: str, n: int = 3, seed: int = 0, source: str = "scripted") -> str:
     """Simulate n throws on the C backend and write them as an animated GIF to `path`."""
     from PIL import Image
-    from ttmjx import thrower
+    from ttmjx.world import thrower
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
     key = jax.random.PRNGKey(seed)

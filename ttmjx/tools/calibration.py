@@ -7,7 +7,7 @@ physics step), never derived from contact parameters:
   relative normal velocity just before and just after the contact;
 * how deep a ball sinks into a surface and whether its centre ever passes the surface's
   mid-plane (tunnelling);
-* free-flight positions, for the air-force parity of MJX (ttmjx.ballphysics) against MuJoCo C's
+* free-flight positions, for the air-force parity of MJX (ttmjx.world.ballphysics) against MuJoCo C's
   ellipsoid fluid model.
 
 Arrival phase. At dt = 1 ms a contact lasts only ~5 physics steps, and where the ball happens to
@@ -16,7 +16,7 @@ per cent. A real ball arrives at a uniformly random phase, so every impact measu
 made over a set of arrival phases (sub-step offsets of the start position); `cor_by_phase`
 gives each one, `measure_cor` their mean.
 
-A `physics` argument is a `ttmjx.backends.CPhysics` (batched, numpy) or `MjxPhysics` (one throw,
+A `physics` argument is a `ttmjx.world.backends.CPhysics` (batched, numpy) or `MjxPhysics` (one throw,
 jitted and vmapped here); `ball_trajectories` hides the difference. The robot is held at its
 home pose (ctrl = qpos = home, at rest: gravity-compensated, a static equilibrium).
 """
@@ -29,8 +29,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from ttmjx import scene
-from ttmjx.config import World
+from ttmjx.world import scene
+from ttmjx.world.config import World
 
 SURFACES = ("table", "paddle", "net")
 # Free-flight physics steps before the ball first reaches a surface in an impact experiment.
@@ -259,7 +259,7 @@ def table_throws(cfg: World, seed: int, n: int):
     """n robot-free throws of the project's thrower (cfg.throws), which solves each launch so
     that the ball clears the net and first bounces on the robot's half: pos, vel, spin_world
     [n, 3] and quat [n, 4] for flight_positions."""
-    from ttmjx import thrower
+    from ttmjx.world import thrower
     th = thrower.sample_throws(jax.random.PRNGKey(seed), cfg, n)
     pos, vel, spin = (np.asarray(x, np.float64) for x in (th.launch_pos, th.launch_vel, th.launch_spin))
     return pos, vel, spin, np.tile([1.0, 0, 0, 0], (n, 1))

@@ -6,12 +6,12 @@ import time
 import jax
 import numpy as np
 
-from ttmjx import backends, thrower
-from ttmjx.config import World
+from ttmjx.world import backends, thrower
+from ttmjx.world.config import World
 
 
 def run(cfg: World, backend: str, n: int, seed: int) -> dict:
-    from ttmjx import striker
+    from ttmjx.tools import striker
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
     key = jax.random.PRNGKey(seed)

@@ -1,7 +1,7 @@
 """Bootstrap demonstrations: non-goal-directed hits collected in the world, one dataset format.
 
-Sources: `scripted` (ttmjx/striker.py, the default) and `es` (an evolution-strategies policy,
-ttmjx/es.py). The goal in the observations is a placeholder (zeros): demonstrations are not
+Sources: `scripted` (ttmjx/tools/striker.py, the default) and `es` (an evolution-strategies policy,
+ttmjx/tools/es.py). The goal in the observations is a placeholder (zeros): demonstrations are not
 goal-directed; the trainer relabels them with where each ball landed.
 """
 from __future__ import annotations
@@ -13,8 +13,8 @@ import time
 import jax
 import numpy as np
 
-from ttmjx import backends, record, thrower
-from ttmjx.config import World, opponent_half
+from ttmjx.world import backends, record, thrower
+from ttmjx.world.config import World, opponent_half
 
 SOURCES = ("scripted", "es")
 COVERAGE_GRID = (6, 4)  # cells along the table's length (x) and width (y) of the opponent's half
@@ -42,10 +42,10 @@ def summary(traj: record.Trajectories, cfg: World) -> dict:
 def source_policy(cfg: World, source: str, params_dir: str | None = None):
     """(Policy, params) of a demonstration source."""
     if source == "scripted":
-        from ttmjx import striker
+        from ttmjx.tools import striker
         return striker.striker_policy(cfg, striker.imitable()), None
     if source == "es":
-        from ttmjx import es
+        from ttmjx.tools import es
         return es.load_policy(cfg, params_dir)
     raise ValueError(f"unknown demonstration source {source!r}; expected one of {SOURCES}")
 
@@ -81,7 +81,7 @@ def _bar(n, on):
 def code_version() -> str:
     try:
         return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=__file__.rsplit("/", 2)[0], timeout=5).stdout.strip() or "unknown"
+                              cwd=__file__.rsplit("/", 3)[0], timeout=5).stdout.strip() or "unknown"
     except Exception:
         return "unknown"
 
@@ -90,7 +90,7 @@ def make_dataset(cfg: World, source: str, n: int, seed: int, out: str, backend: 
                  progress: bool = True) -> dict:
     """Collect and write a dataset to `out` (refuses to overwrite); returns the JSON summary."""
     import os
-    from ttmjx.config import to_dict
+    from ttmjx.world.config import to_dict
     if os.path.exists(os.path.join(out, "trajectories.npz")):
         raise FileExistsError(f"{out} already holds a dataset; refusing to overwrite it")
     t0 = time.perf_counter()
@@ -110,7 +110,7 @@ def plot_landings(directory: str, path: str | None = None) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import os
-    from ttmjx.config import Table
+    from ttmjx.world.config import Table
     traj, meta = record.load(directory)
     t = Table()
     fig, ax = plt.subplots(figsize=(5, 7))
@@ -138,5 +138,5 @@ def plot_landings(directory: str, path: str | None = None) -> str:
 
 
 def _world_of(meta: dict) -> World:
-    from ttmjx.config import from_dict
+    from ttmjx.world.config import from_dict
     return from_dict(World, meta["world"]) if "world" in meta else World()

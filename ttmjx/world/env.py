@@ -1,6 +1,6 @@
 """The task for ONE throw, as pure functions of an immutable state (batched by vmap).
 
-The physics lives in ttmjx/backends.py (MJX or MuJoCo C); everything here is identical for
+The physics lives in ttmjx/world/backends.py (MJX or MuJoCo C); everything here is identical for
 both: command clipping, events detected from the ball's per-physics-step state, observation
 and frame stack. Events come from the ball alone (plus the paddle's position, a sensor), so
 the two backends give the same events from the same motion:
@@ -17,8 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttmjx import ballphysics
-from ttmjx.config import World
+from ttmjx.world import ballphysics
+from ttmjx.world.config import World
 
 # A velocity change this far from free flight within one physics step is a contact. Free-flight
 # changes are < 0.02 m/s per 1 ms step (gravity 0.0098, air < 0.01); the lightest contacts that
@@ -70,7 +70,7 @@ class Layout(NamedTuple):
 
 
 def layout(m) -> Layout:
-    from ttmjx import scene
+    from ttmjx.world import scene
     i = scene.ids(m)
     return Layout(i.ball_qpos, i.ball_qvel, tuple(int(x) for x in i.robot_qpos),
                   tuple(int(x) for x in i.robot_qvel), tuple(float(x) for x in m.qpos0))

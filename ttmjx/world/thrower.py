@@ -1,6 +1,6 @@
 """The ball thrower: three launch distributions, launch velocities solved WITH air drag.
 
-Flight model. `ttmjx.ballphysics` (drag and, with spin, Magnus; identical to MuJoCo's ellipsoid
+Flight model. `ttmjx.world.ballphysics` (drag and, with spin, Magnus; identical to MuJoCo's ellipsoid
 fluid model of the sphere) integrated exactly like MuJoCo's Euler integrator at cfg.physics_dt:
 
     v += a(v, w) dt;   w += (torque / I) dt;   x += v dt
@@ -51,8 +51,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from ttmjx import ballphysics, scene
-from ttmjx.config import THROW_DISTRIBUTIONS, Ball, Table, World
+from ttmjx.world import ballphysics, scene
+from ttmjx.world.config import THROW_DISTRIBUTIONS, Ball, Table, World
 
 GRAVITY = 9.81
 

@@ -7,12 +7,12 @@ import jax
 import mujoco
 import numpy as np
 
-from ttmjx import backends
-from ttmjx.config import World
+from ttmjx.world import backends
+from ttmjx.world.config import World
 
 
 def _throws(cfg: World, n: int, seed: int):
-    from ttmjx import thrower
+    from ttmjx.world import thrower
     return thrower.sample_throws(jax.random.PRNGKey(seed), cfg, n)
 
 

@@ -1,7 +1,7 @@
 """The `es` demonstration source: an evolution-strategies policy trained in simulation on a
 shaped reward (paper, "Building up the initial bootstrap dataset": a standard ES policy trained
 fully in simulation, used to bootstrap demonstrations; it was "narrow"). A second source and a
-baseline; the default source is the scripted striker (ttmjx/striker.py).
+baseline; the default source is the scripted striker (ttmjx/tools/striker.py).
 
 The algorithm is the standard OpenAI-ES (Salimans et al. 2017, "Evolution Strategies as a
 Scalable Alternative to Reinforcement Learning"): Gaussian perturbations of the parameter mean
@@ -12,7 +12,7 @@ steps/s on a CPU). It only calls `Backend.rollout`, so `backend="mjx"` (a GPU) t
 (the population policy is jit-traceable); the shipped weights were trained on the C backend and
 the MJX path has not been exercised.
 
-The shipped weights (ttmjx/assets/es_policy.json holds the run and the measured numbers): 134
+The shipped weights (ttmjx/tools/assets/es_policy.json holds the run and the measured numbers): 134
 generations x 48 candidates x 8 narrow throws (~51k episodes, 14.5 min on 2 shared CPU cores).
 On 200 fresh narrow throws the policy hits 98% of the balls and returns none: it learned to put
 the blade in the ball's path (a block), and the blocked balls fall back on the robot's half. Like
@@ -43,7 +43,7 @@ vectors [P, D] and reads each throw's candidate index from the goal slot of the 
 
 Weights are saved as an uncompressed .npz of named float32 arrays (loaded with
 allow_pickle=False) plus a JSON file with the training summary; the shipped ones live in
-ttmjx/assets/ (es_policy.npz, es_policy.json).
+ttmjx/tools/assets/ (es_policy.npz, es_policy.json).
 """
 from __future__ import annotations
 
@@ -59,8 +59,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from ttmjx import backends
-from ttmjx.config import World
+from ttmjx.world import backends
+from ttmjx.world.config import World
 
 ASSETS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "assets")
 WEIGHTS_NAME = "es_policy.npz"
@@ -189,7 +189,7 @@ def load_params(path: str) -> dict:
 
 def load_policy(cfg: World, params_dir: str | None = None):
     """(Policy, params) of the ES source. params_dir: a directory holding es_policy.npz (default:
-    the shipped weights in ttmjx/assets/) or the path of an .npz file itself. The home pose and
+    the shipped weights in ttmjx/tools/assets/) or the path of an .npz file itself. The home pose and
     the normalisation come from the weights file, not from cfg; the shipped policy was trained at
     100 Hz on narrow throws and is not meant for other rates or distributions."""
     path = params_dir or ASSETS
@@ -208,7 +208,7 @@ class Paddle:
 
     def __init__(self, cfg: World):
         import mujoco
-        from ttmjx import scene
+        from ttmjx.world import scene
         self.mujoco = mujoco
         self.m = scene.model(cfg)
         self.d = mujoco.MjData(self.m)
@@ -365,7 +365,7 @@ def train_es(cfg: World, generations: int, population: int, seed: int, backend: 
     history: one dict per generation (population fitness and rates, seconds, and the
     validation numbers on evaluated generations).
     """
-    from ttmjx import thrower
+    from ttmjx.world import thrower
     t_start = time.perf_counter()
     key = jax.random.PRNGKey(seed)
     k_init, k_pool, k_val, k_es = jax.random.split(key, 4)
