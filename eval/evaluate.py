@@ -1,5 +1,6 @@
-"""Evaluation of trained policies: 200 uniform goals or the five-goal protocol, no exploration
-noise; an ensemble plays the goals in equal blocks, one block per member."""
+"""Evaluation of trained policies: uniform goals or the five-goal protocol, no exploration
+noise; an ensemble plays the goals in equal blocks, one block per member. Scoring is the world's
+one goal-metrics function (ttmjx.world.goals)."""
 from __future__ import annotations
 
 import math
@@ -7,12 +8,13 @@ import math
 import jax
 import numpy as np
 
-from eval.metrics import five_goals, goal_metrics, per_goal_metrics, uniform_goals
 from models.config import PolicyConfig
-from models.policy import ensemble_size, make_policy
+from models.policy import ensemble_size, make_policy, member
+from training.checkpoint import load_checkpoint
 from ttmjx.world import thrower
-from ttmjx.world.backends import Backend
-from ttmjx.world.config import World
+from ttmjx.world.backends import Backend, resolve_backend
+from ttmjx.world.config import THROW_DISTRIBUTIONS, World
+from ttmjx.world.goals import five_goals, goal_metrics, per_goal_metrics, uniform_goals
 
 
 def rollout_goals(world: World, pcfg: PolicyConfig, params, backend: Backend, key, goals, members=None):
@@ -22,20 +24,18 @@ def rollout_goals(world: World, pcfg: PolicyConfig, params, backend: Backend, ke
     return backend.rollout(make_policy(pcfg), params, k_roll, th, goals, members=members)
 
 
-def _padded(goals: np.ndarray, members: int | None) -> np.ndarray:
+def padded(goals: np.ndarray, members: int | None) -> np.ndarray:
     """Repeat goals cyclically up to a multiple of the ensemble size."""
     n = members or 1
-    g = len(goals)
-    total = math.ceil(g / n) * n
-    return goals[np.arange(total) % g]
+    total = math.ceil(len(goals) / n) * n
+    return goals[np.arange(total) % len(goals)]
 
 
-def evaluate_params(world: World, pcfg: PolicyConfig, params, backend: Backend, key, n_goals: int = 200,
-                    members: int | None = None) -> dict:
+def evaluate_uniform(world: World, pcfg: PolicyConfig, params, backend: Backend, key, n_goals: int = 200,
+                     members: int | None = None) -> dict:
     """goal_metrics over n_goals uniform goals on the opponent's half."""
-    members = members or (ensemble_size(params) if _has_member_axis(params, pcfg) else None)
     k_goal, k_run = jax.random.split(key)
-    goals = _padded(uniform_goals(k_goal, n_goals, world.table), members)
+    goals = padded(np.asarray(uniform_goals(k_goal, n_goals, world.table), np.float32), members)
     tr = rollout_goals(world, pcfg, params, backend, k_run, goals, members)
     return goal_metrics(tr.landing, goals, tr.hit)
 
@@ -44,19 +44,57 @@ def evaluate_five(world: World, pcfg: PolicyConfig, params, backend: Backend, ke
                   members: int | None = None) -> dict:
     """The five-goal protocol: per_goal attempts at each of goals A-E; totals plus per goal."""
     goals, names = five_goals(per_goal)
-    idx = np.arange(len(goals))
-    idx = _padded(idx, members)
+    idx = padded(np.arange(len(goals)), members)
     tr = rollout_goals(world, pcfg, params, backend, key, goals[idx], members)
     out = goal_metrics(tr.landing, goals[idx], tr.hit)
     out["per_goal"] = per_goal_metrics(tr.landing, goals[idx], tr.hit, [names[i] for i in idx])
     return out
 
 
-def _has_member_axis(params, pcfg) -> bool:
-    # Ensemble params carry one more leading axis than a single member's.
-    from models.normalizer import identity_normalizer
-    from models.policy import init_params
-    one = jax.eval_shape(lambda: init_params(jax.random.PRNGKey(0), pcfg, identity_normalizer(pcfg.obs_size)))
-    a = jax.tree.leaves(one)[0]
-    b = jax.tree.leaves(params)[0]
-    return np.ndim(b) == np.ndim(a) + 1
+def training_evaluation(cfg):
+    """The evaluation a training run calls (training.trainer.Run's `evaluate`): cfg.eval_goals
+    uniform goals, the whole ensemble playing. (params, backend, key) -> metrics."""
+    def evaluate(params, backend: Backend, key) -> dict:
+        return evaluate_uniform(cfg.world, cfg.policy, params, backend, key, cfg.eval_goals,
+                                members=cfg.train.members)
+    return evaluate
+
+
+def evaluate_checkpoint(path: str, goals: str = "200", per_goal: int = 40, distribution: str | None = None,
+                        backend: str | None = None, seed: int = 1234, member_index: int | None = None,
+                        step: int | None = None) -> dict:
+    """`ttmjx eval`: metrics of a run's checkpoint (its moving-average policy) on `goals` uniform
+    goals or 'five' (per_goal attempts at each of A-E); throws of the run's distribution or
+    `distribution`; one member alone with member_index."""
+    n_goals = _goal_count(goals)
+    if distribution is not None and distribution not in THROW_DISTRIBUTIONS:
+        raise ValueError(f"distribution {distribution!r}; expected one of {THROW_DISTRIBUTIONS}")
+    loaded = load_checkpoint(path, step)
+    cfg = loaded.cfg
+    world = cfg.world if distribution is None else cfg.world.with_throws(distribution)
+    be = Backend(world, resolve_backend(backend or cfg.backend))
+    members, params = cfg.train.members, loaded.params
+    if member_index is not None:
+        if not 0 <= member_index < ensemble_size(params):
+            raise ValueError(f"--member {member_index} is out of range: the run has {members} members")
+        members, params = None, member(params, member_index)
+    key = jax.random.PRNGKey(seed)
+    if n_goals is None:
+        out = evaluate_five(world, cfg.policy, params, be, key, per_goal, members)
+    else:
+        out = evaluate_uniform(world, cfg.policy, params, be, key, n_goals, members)
+    return {**out, "distribution": world.throws.name, "trajectories": int(loaded.ck.counters.trajectories),
+            "step": loaded.step}
+
+
+def _goal_count(goals: str) -> int | None:
+    """'five' -> None; a positive number of uniform goals -> that number."""
+    if goals == "five":
+        return None
+    try:
+        n = int(goals)
+    except ValueError:
+        raise ValueError(f"--goals must be a number of uniform goals or 'five', got {goals!r}") from None
+    if n < 1:
+        raise ValueError(f"--goals must be >= 1, got {n}")
+    return n

@@ -4,5 +4,5 @@ from models.networks import init_net, net_sequence, net_step, zero_carry
 from models.normalizer import (Normalizer, denormalize_actions, identity_normalizer,
                                normalize_actions, normalize_obs, normalizer_from_data)
 from models.policy import (Policy, PolicyParams, ensemble_size, init_ensemble, init_params,
-                           make_policy, member, observation_vector, predict_sequence,
+                           make_policy, member, predict_sequence,
                            with_action_noise)

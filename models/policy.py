@@ -6,7 +6,7 @@ vmap. A `Policy` is written for one member and one throw; batch it with vmap.
 """
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -14,37 +14,13 @@ import jax.numpy as jnp
 from models.config import ACTION_SIZE, PolicyConfig
 from models.networks import init_net, net_sequence, net_step, zero_carry
 from models.normalizer import Normalizer, denormalize_actions, normalize_obs
+from ttmjx.world import observation
+from ttmjx.world.env import Policy
 
 
 class PolicyParams(NamedTuple):
     net: Any              # flax params dict (the only part the optimizer updates)
     norm: Normalizer      # fixed statistics from data
-
-
-class Policy(NamedTuple):
-    """docs/DESIGN.md: init(params, key) -> carry; apply(params, carry, obs, key) -> (carry, action [8])."""
-    init: Callable
-    apply: Callable
-
-
-def observation_vector(frame, ball_vel, obs_size: int):
-    """frame [..., 13] (joints, ball pos, goal) or [..., 16] (joints, ball pos, ball vel, goal),
-    ball_vel [..., 3] -> [..., obs_size].
-
-    16 values insert ball_vel after the ball position; 13 from 16 drop the velocity columns.
-    """
-    n = frame.shape[-1]
-    if n not in (13, 16):
-        raise ValueError(f"observation_vector: frame has shape {tuple(frame.shape)}, "
-                         f"expected [..., 13] or [..., 16]")
-    if n == obs_size:
-        return frame
-    if obs_size == 13:
-        return jnp.concatenate([frame[..., :11], frame[..., 14:]], axis=-1)
-    if ball_vel is None or ball_vel.shape[-1] != 3:
-        raise ValueError(f"observation_vector: ball_vel has shape {getattr(ball_vel, 'shape', None)}, "
-                         f"expected [..., 3] to build 16-value observations")
-    return jnp.concatenate([frame[..., :11], ball_vel, frame[..., 11:]], axis=-1)
 
 
 def init_params(key, cfg: PolicyConfig, norm: Normalizer) -> PolicyParams:
@@ -81,11 +57,11 @@ def _step_input(cfg: PolicyConfig, obs):
     """env.Obs -> the network input [S, O] (raw). Frames may be 13 or 16 wide (the env's
     World.ball_velocity_obs); they are converted to cfg.obs_size."""
     if cfg.kind == "lstm":
-        return observation_vector(obs.frame, obs.ball_vel, cfg.obs_size)[None]
+        return observation.to_width(obs.frame, cfg.obs_size, obs.ball_vel, xp=jnp)[None]
     if obs.frames.ndim != 2 or obs.frames.shape[0] != cfg.frame_stack:
         raise ValueError(f"policy: obs.frames has shape {tuple(obs.frames.shape)}, expected "
                          f"({cfg.frame_stack}, 13 or 16) for PolicyConfig.frame_stack={cfg.frame_stack}")
-    return observation_vector(obs.frames, None, cfg.obs_size)
+    return observation.to_width(obs.frames, cfg.obs_size, xp=jnp)
 
 
 def make_policy(cfg: PolicyConfig) -> Policy:

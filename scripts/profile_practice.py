@@ -10,7 +10,8 @@ import time
 import jax
 import jax.numpy as jnp
 
-from training.runconfig import preset, resolve_backend
+from training.practice import practice_policy
+from training.runconfig import preset
 from training.trainer import Run
 
 
@@ -29,7 +30,7 @@ def timed(name, fn, *args, reps=3):
 def main(name):
     import dataclasses
     from ttmjx.world import thrower
-    from ttmjx.world.env import uniform_goals
+    from ttmjx.world.goals import uniform_goals
     cfg = dataclasses.replace(preset(name), demos=256, run_dir=f"/tmp/prof_{name}")
     run = Run(cfg, progress=False)
     ck = run.initial()
@@ -41,7 +42,7 @@ def main(name):
         timed(f"sample_throws[{n}]", f, key)
     throws = thrower.sample_throws(key, w, m)
     goals = uniform_goals(key, m, w.table)
-    roll = jax.jit(run.backend.rollout_fn(pr.policy, members=cfg.train.members))
+    roll = jax.jit(run.backend.rollout_fn(practice_policy(cfg.policy, cfg.train), members=cfg.train.members))
     timed(f"rollout[{m}]", roll, ck.state.params, key, throws, goals)
     timed(f"train_loop[{cfg.steps_between_ssp}]", pr.train_loop, ck.state, ck.cache, key)
     th = pr.round_throws(key, 0)

@@ -12,11 +12,16 @@ import jax
 import numpy as np
 import pytest
 
-from ttmjx.world import record
-from ttmjx.tools import demos
+from eval.evaluate import evaluate_uniform, training_evaluation
 from training import checkpoint, runconfig
+from training.pool import load_logs
 from training.trainer import Run, is_eval_iteration, practice_iterations, pretrain_iterations
 from training.update import acting_params
+from ttmjx.tools import demos
+from ttmjx.world import record
+
+DATA = os.path.join(os.path.dirname(__file__), "data")
+BEFORE = json.load(open(os.path.join(DATA, "before_renovation.json")))
 
 
 @pytest.fixture(scope="module")
@@ -34,9 +39,12 @@ def tiny(demo_dir, run_dir, **kw):
 
 
 def final_params(run_dir):
-    cfg = runconfig.from_json(checkpoint.restore_config(os.path.join(run_dir, "checkpoints")))
-    ck, _ = checkpoint.restore(os.path.join(run_dir, "checkpoints"), Run(cfg, progress=False).template())
-    return ck
+    return checkpoint.load_checkpoint(run_dir).ck
+
+
+def train(cfg):
+    """A run as `ttmjx train` builds it: the evaluation is given by the eval layer."""
+    return Run(cfg, evaluate=training_evaluation(cfg), progress=False)
 
 
 def test_schedule_evaluates_lfp_point_and_end():
@@ -51,15 +59,15 @@ def test_schedule_evaluates_lfp_point_and_end():
 def trained(demo_dir, tmp_path_factory):
     """One uninterrupted tiny run (the reference for resume)."""
     d = tmp_path_factory.mktemp("run_full")
-    out = Run(tiny(demo_dir, d), progress=False).run()
+    out = train(tiny(demo_dir, d)).run()
     return d, out
 
 
 def return_rate(run: Run, params, n: int = 64) -> float:
     """Fraction of n narrow throws the policy returns to the opponent's half (uniform goals)."""
     from eval.evaluate import rollout_goals
-    from eval.metrics import uniform_goals
-    goals = uniform_goals(jax.random.PRNGKey(11), n, run.cfg.world.table)
+    from ttmjx.world.goals import uniform_goals
+    goals = np.asarray(uniform_goals(jax.random.PRNGKey(11), n, run.cfg.world.table))
     tr = rollout_goals(run.cfg.world, run.cfg.policy, params, run.backend, jax.random.PRNGKey(12), goals,
                        members=run.cfg.train.members)
     return float(np.mean(tr.on_opponent))
@@ -86,12 +94,54 @@ def test_tiny_training_learns_to_return_balls_above_its_start(trained, demo_dir,
     assert runconfig.from_json(saved) == dataclasses.replace(cfg, run_dir=str(run_dir))
 
 
+def test_same_seed_same_numbers_as_before_the_renovation(trained):
+    """The metrics of the tiny run equal those recorded with the code before the One-way house
+    renovation (tests/data/before_renovation.json): same losses, practice and evaluation."""
+    run_dir, _ = trained
+    rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"))]
+    want = BEFORE["tiny_metrics"]
+    assert [sorted(set(r) - {"seconds"}) for r in rows] == [sorted(r) for r in want]
+    for got, exp in zip(rows, want):
+        for k, v in exp.items():
+            if isinstance(v, float):
+                assert got[k] == pytest.approx(v, rel=1e-5, abs=1e-9), (got["iteration"], k)
+            else:
+                assert got[k] == v, (got["iteration"], k)
+
+
+def test_a_checkpoint_written_before_the_renovation_loads_and_evaluates_the_same():
+    """The one loader opens a checkpoint written by the old code (its saved config builds the
+    structure) and its policy scores what the old evaluation recorded."""
+    from ttmjx.world.backends import Backend
+    loaded = checkpoint.load_checkpoint(os.path.join(DATA, "tiny_run_v0"))
+    assert loaded.cfg.preset == "tiny" and loaded.cfg.train.capacity == 320 and loaded.step == 6
+    got = evaluate_uniform(loaded.cfg.world, loaded.cfg.policy, loaded.params, Backend(loaded.cfg.world, "c"),
+                           jax.random.PRNGKey(1234), 40, loaded.cfg.train.members)
+    want = BEFORE["checkpoint_eval_seed1234_40goals"]
+    exact = ("within_30cm", "within_20cm", "hit_rate", "goals")
+    assert {k: got[k] for k in exact} == {k: want[k] for k in exact}
+    assert got["mean_dist"] == pytest.approx(want["mean_dist"], rel=1e-12)
+
+
+def test_the_loader_names_the_file_and_reason_it_cannot_read(tmp_path):
+    import shutil
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        checkpoint.load_checkpoint(str(tmp_path / "missing"))
+    with pytest.raises(FileNotFoundError, match="neither a run directory"):
+        checkpoint.load_checkpoint(str(tmp_path))
+    broken = tmp_path / "broken"
+    shutil.copytree(os.path.join(DATA, "tiny_run_v0"), broken)
+    (broken / "checkpoints" / "6" / "config" / "metadata").write_text(json.dumps({"preset": "tiny", "bogus": 1}))
+    with pytest.raises(ValueError, match=r"checkpoints/6: the saved configuration is not a RunConfig"):
+        checkpoint.load_checkpoint(str(broken))
+
+
 def test_resume_after_interruption_is_bit_exact(trained, demo_dir, tmp_path):
     full_dir, _ = trained
     cfg = tiny(demo_dir, tmp_path / "run_split")
-    Run(cfg, progress=False).run(max_iterations=3)  # "killed" after 3 iterations
+    train(cfg).run(max_iterations=3)  # "killed" after 3 iterations
     assert checkpoint.steps(os.path.join(cfg.run_dir, "checkpoints"))[-1] == 3
-    Run(cfg, progress=False).run()                   # resumed to the end
+    train(cfg).run()                  # resumed to the end
     a, b = final_params(str(full_dir)), final_params(cfg.run_dir)
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
@@ -179,7 +229,6 @@ def test_robot_practice_closes_the_loop(trained, demo_dir, tmp_path):
     cfg = tiny(demo_dir, resumed, data=(logs,), total_trajectories=360)
     Run(cfg, progress=False).run(max_iterations=1)
     after = final_params(resumed)
-    from training.trainer import load_logs
     logged = load_logs([logs], cfg.world.horizon)
     assert logged.size == 4
     from training.data import keep_for_training

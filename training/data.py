@@ -5,11 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from models.normalizer import Normalizer, normalizer_from_data
-from models.policy import observation_vector
+from ttmjx.world import observation
 from ttmjx.world.config import Table, opponent_half
 from ttmjx.world.record import Trajectories
-
-OBS_GOAL = slice(11, 13)   # the goal columns: the last 2 of every 13-value frame
 
 
 def _xp(*arrays):
@@ -29,9 +27,7 @@ def relabel(traj: Trajectories) -> Trajectories:
     xp = _xp(traj.obs, traj.landing, traj.goal)
     landed = xp.all(xp.isfinite(traj.landing), axis=-1, keepdims=True)
     goal = xp.where(landed, traj.landing, traj.goal).astype(traj.goal.dtype)
-    goal_cols = xp.broadcast_to(goal[:, None, :], traj.obs[..., OBS_GOAL].shape)
-    obs = xp.concatenate([traj.obs[..., :OBS_GOAL.start], goal_cols.astype(traj.obs.dtype)], axis=-1)
-    return traj._replace(obs=obs, goal=goal)
+    return traj._replace(obs=observation.with_goal(traj.obs, goal[:, None, :], xp=xp), goal=goal)
 
 
 def keep_for_training(traj: Trajectories, table: Table, margin: float):
@@ -57,5 +53,5 @@ def data_normalizer(traj: Trajectories, obs_size: int, keep=None, min_std: float
     mask = jnp.asarray(traj.valid, bool)
     if keep is not None:
         mask = mask & jnp.asarray(keep, bool)[:, None]
-    obs = observation_vector(jnp.asarray(traj.obs), jnp.asarray(traj.ball_vel), obs_size)
+    obs = observation.to_width(jnp.asarray(traj.obs), obs_size, jnp.asarray(traj.ball_vel), xp=jnp)
     return normalizer_from_data(obs, jnp.asarray(traj.actions), mask, min_std)

@@ -1,15 +1,13 @@
 """Self-supervised practice (Algorithm 1): roll the current policies out toward random goals,
-drop episodes where the ball was not hit, relabel with the landing point, append to the one
-shared cache, train S steps.
+relabel every hit with where the ball landed, append to the one shared cache, train S steps.
 
-On MJX one SSP iteration (goal and throw sampling, rollouts, filtering, relabeling, appending,
-S training steps) is ONE jit-compiled function. On a CPU the rollouts run on the MuJoCo C
-backend (host loop over control steps) and the append and the S training steps stay
-jit-compiled.
+`practice_round` is the round, written once. On MJX all of it is pure and `Practice` compiles it
+as ONE jit-compiled function; on a CPU the rollouts step MuJoCo C on the host, so the same
+round runs eagerly around the compiled pieces (goals, append, the S updates).
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -21,8 +19,8 @@ from training.config import TrainConfig
 from training.update import TrainState, acting_params, make_train_loop
 from ttmjx.world import thrower
 from ttmjx.world.backends import Backend
-from ttmjx.world.env import uniform_goals
 from ttmjx.world.config import World
+from ttmjx.world.goals import goal_stats, uniform_goals
 from ttmjx.world.record import Trajectories
 
 
@@ -34,6 +32,14 @@ class PracticeStats(NamedTuple):
     kept: jax.Array          # episodes appended to the cache
 
 
+class RoundParts(NamedTuple):
+    """The steps of a round, compiled or not as the backend allows."""
+    goals: Callable      # key -> [M, 2]
+    rollout: Callable    # (params, key, throws [M], goals [M, 2]) -> Trajectories
+    append: Callable     # (cache, traj) -> cache
+    train: Callable      # (state, cache, key) -> (state, loss [N])
+
+
 def practice_policy(pcfg: PolicyConfig, tcfg: TrainConfig):
     """The rollout policy of practice: the member's policy plus held-per-episode action noise."""
     base = make_policy(pcfg)
@@ -41,17 +47,26 @@ def practice_policy(pcfg: PolicyConfig, tcfg: TrainConfig):
 
 
 def practice_stats(traj: Trajectories, kept_before, kept_after) -> PracticeStats:
-    dist = jnp.linalg.norm(traj.landing - traj.goal, axis=-1)
-    ok = traj.hit & jnp.isfinite(dist)
-    d = jnp.where(ok, dist, jnp.inf)
-    return PracticeStats(jnp.mean(traj.hit), jnp.mean(d <= 0.3), jnp.mean(d <= 0.2),
+    s = goal_stats(traj.landing, traj.goal, traj.hit, xp=jnp)
+    return PracticeStats(s["hit_rate"], s["within_30cm"], s["within_20cm"],
                          (kept_after - kept_before).astype(jnp.int32))
 
 
 def round_keys(key):
-    """Named keys of one SSP round, split once at the top."""
+    """Named keys of one SSP round, split once at the top: (goals, rollouts, training)."""
     k_goal, k_roll, k_train = jax.random.split(key, 3)
     return k_goal, k_roll, k_train
+
+
+def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, throws: thrower.Throw):
+    """One round of Algorithm 1 -> (state, cache, loss [N], PracticeStats): goals, rollouts of the
+    acting (moving-average) policies on `throws` [M], relabel + append, S updates."""
+    k_goal, k_roll, k_train = round_keys(key)
+    traj = parts.rollout(acting_params(state), k_roll, throws, parts.goals(k_goal))
+    new = parts.append(cache, traj)
+    stats = practice_stats(jax.tree.map(jnp.asarray, traj), cache.count, new.count)
+    state, loss = parts.train(state, new, k_train)
+    return state, new, loss, stats
 
 
 # Throws are solved for this many rounds at once. Solving launch velocities is a sequential loop
@@ -62,22 +77,35 @@ THROW_STREAM = 0x7E40   # fold-in tag that separates the throw keys from the per
 
 
 class Practice:
-    """SSP iterations for one configuration; compiled functions built once and reused."""
+    """Practice rounds and train-only rounds of one configuration; the compiled functions are
+    built once here (the jit boundaries of training) and reused every round."""
 
     def __init__(self, world: World, pcfg: PolicyConfig, tcfg: TrainConfig, backend: Backend,
                  episodes: int, train_steps: int):
         if episodes % tcfg.members:
             raise ValueError(f"episodes_per_ssp={episodes} must be a multiple of members={tcfg.members} "
                              f"(every member practises an equal share)")
-        self.world, self.pcfg, self.tcfg, self.backend = world, pcfg, tcfg, backend
-        self.episodes, self.train_steps = episodes, train_steps
-        self.policy = practice_policy(pcfg, tcfg)
+        self.world, self.tcfg, self.backend, self.episodes = world, tcfg, backend, episodes
         self.train_loop = make_train_loop(pcfg, tcfg, train_steps) if train_steps > 0 else None
-        self._append = jax.jit(lambda cache, traj: add_episodes(cache, traj, world.table, tcfg.goal_margin))
-        self._goals = jax.jit(uniform_goals, static_argnums=(1, 2))  # (key, n, table)
         self._sample_throws = jax.jit(lambda k: thrower.sample_throws(k, world, THROW_BLOCK * episodes))
         self._bank = (None, None)
-        self._fused = None
+        policy = practice_policy(pcfg, tcfg)
+        pure = self._pure_parts(backend.rollout_fn(policy, members=tcfg.members)) if backend.name == "mjx" else None
+        self._round = jax.jit(lambda *a: practice_round(pure, *a)) if pure else self._host_round(policy)
+
+    def _pure_parts(self, rollout) -> RoundParts:
+        world, m, margin = self.world, self.episodes, self.tcfg.goal_margin
+        return RoundParts(goals=lambda k: uniform_goals(k, m, world.table), rollout=rollout,
+                          append=lambda c, t: add_episodes(c, t, world.table, margin), train=self.train)
+
+    def _host_round(self, policy):
+        """MuJoCo C: the round runs on the host around compiled goals, append and updates."""
+        backend, members = self.backend, self.tcfg.members
+        pure = self._pure_parts(None)
+        parts = pure._replace(
+            goals=jax.jit(pure.goals), append=jax.jit(pure.append),
+            rollout=lambda p, k, th, g: backend.rollout(policy, p, k, th, g, members=members))
+        return lambda *a: practice_round(parts, *a)
 
     def round_throws(self, base_key, it: int) -> thrower.Throw:
         """The M throws [M, ...] of practice round `it`, a function of (base_key, it) only (so a
@@ -89,19 +117,6 @@ class Practice:
         m = self.episodes
         return jax.tree.map(lambda x: x[i * m:(i + 1) * m], self._bank[1])
 
-    # -- the pieces ---------------------------------------------------------------------
-    def rollouts(self, params, key, throws: thrower.Throw) -> Trajectories:
-        """M practice episodes of the ensemble (members play equal blocks) on `throws` [M]
-        toward uniform goals."""
-        k_goal, k_roll, _ = round_keys(key)
-        goals = self._goals(k_goal, self.episodes, self.world.table)
-        return self.backend.rollout(self.policy, params, k_roll, throws, goals, members=self.tcfg.members)
-
-    def absorb(self, cache: Cache, traj: Trajectories) -> tuple[Cache, PracticeStats]:
-        """Filter, relabel and append practice episodes."""
-        new = self._append(cache, traj)
-        return new, practice_stats(jax.tree.map(jnp.asarray, traj), cache.count, new.count)
-
     def train(self, state: TrainState, cache: Cache, key):
         """S training steps -> (state, mean loss per member [N])."""
         if self.train_loop is None:
@@ -109,34 +124,10 @@ class Practice:
         state, loss = self.train_loop(state, cache, key)
         return state, loss.mean(0)
 
-    # -- one iteration ---------------------------------------------------------------------
     def iteration(self, state: TrainState, cache: Cache, key, throws: thrower.Throw | None = None):
-        """One SSP iteration -> (state, cache, loss [N], PracticeStats or None). With `throws`
-        [M] (`round_throws`) the round practises on them; without, it only trains."""
-        if throws is not None and self.backend.name == "mjx":
-            if self._fused is None:
-                self._fused = jax.jit(self._fused_iteration())
-            return self._fused(state, cache, key, throws)
-        stats = None
+        """One iteration -> (state, cache, loss [N], PracticeStats or None). With `throws` [M]
+        (`round_throws`) a practice round; without, S updates only (pretraining, LFP)."""
         if throws is not None:
-            cache, stats = self.absorb(cache, self.rollouts(acting_params(state), key, throws))
-        k_train = round_keys(key)[2]
-        state, loss = self.train(state, cache, k_train)
-        return state, cache, loss, stats
-
-    def _fused_iteration(self):
-        """The whole SSP iteration as one pure function (MJX)."""
-        rollout = self.backend.rollout_fn(self.policy, members=self.tcfg.members)
-        world, episodes = self.world, self.episodes
-
-        def fused(state, cache, key, throws):
-            k_goal, k_roll, k_train = round_keys(key)
-            goals = uniform_goals(k_goal, episodes, world.table)
-            traj = rollout(acting_params(state), k_roll, throws, goals)
-            new = add_episodes(cache, traj, world.table, self.tcfg.goal_margin)
-            stats = practice_stats(traj, cache.count, new.count)
-            if self.train_loop is None:
-                return state, new, jnp.zeros(self.tcfg.members), stats
-            state, loss = self.train_loop(state, new, k_train)
-            return state, new, loss.mean(0), stats
-        return fused
+            return self._round(state, cache, key, throws)
+        state, loss = self.train(state, cache, round_keys(key)[2])
+        return state, cache, loss, None

@@ -66,17 +66,6 @@ class RunConfig:
                              f"{self.world.obs_size} values (world.ball_velocity_obs={self.world.ball_velocity_obs})")
 
 
-def on_accelerator() -> bool:
-    import jax
-    return jax.default_backend() in ("gpu", "cuda", "rocm", "tpu")
-
-
-def resolve_backend(name: str) -> str:
-    if name == "auto":
-        return "mjx" if on_accelerator() else "c"
-    return name
-
-
 def _cpu_default() -> RunConfig:
     """Sized so the whole main job (demonstrations included) ends within ~20 min on 2 CPU cores."""
     return RunConfig(
@@ -145,7 +134,7 @@ def tiny() -> RunConfig:
 def preset(name: str) -> RunConfig:
     """A named preset; `default` picks the available device."""
     if name == "default":
-        from training.runconfig import on_accelerator
+        from ttmjx.world.backends import on_accelerator
         return _gpu_default() if on_accelerator() else _cpu_default()
     if name == "lfp":
         base = _cpu_default()
@@ -172,3 +161,9 @@ def from_json(d: dict) -> RunConfig:
     d["train"] = TrainConfig(**d["train"])
     d["data"] = tuple(d.get("data", ()))
     return RunConfig(**d)
+
+
+def to_json(cfg: RunConfig) -> dict:
+    """The JSON-ready dict of a RunConfig (config.json, checkpoints); from_json inverts it."""
+    import json
+    return json.loads(json.dumps(dataclasses.asdict(cfg)))

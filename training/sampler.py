@@ -6,7 +6,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from models.policy import observation_vector
+from ttmjx.world import observation
 from training.cache import Cache
 
 
@@ -79,6 +79,6 @@ def sample_subsequences(key, cache: Cache, k: int, batch_size: int,
     mask = (steps < t) & jnp.take_along_axis(valid, jnp.minimum(steps, t - 1), axis=1)
     idx = jnp.clip(steps[..., None] - (frame_stack - 1) + jnp.arange(frame_stack), 0, t - 1)
     rows = ep[:, None, None]
-    frames = observation_vector(cache.obs[rows, idx], cache.ball_vel[rows, idx], obs_size)
+    frames = observation.to_width(cache.obs[rows, idx], obs_size, cache.ball_vel[rows, idx], xp=jnp)
     actions = cache.actions[ep[:, None], jnp.minimum(steps, t - 1)]
     return Batch(frames, actions, mask, ep.astype(jnp.int32), start)

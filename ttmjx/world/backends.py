@@ -10,24 +10,32 @@ from __future__ import annotations
 
 import functools
 import os
-from typing import Callable, NamedTuple
-
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from ttmjx.world import ballphysics, env, scene
+from ttmjx.world import ballphysics, env, observation, scene
 from ttmjx.world.config import World
 from ttmjx.world.record import Trajectories
 
 BACKENDS = ("c", "mjx")
 
 
-class Policy(NamedTuple):
-    """A policy for ONE throw (docs/DESIGN.md); batched by vmap."""
-    init: Callable      # (params, key) -> carry
-    apply: Callable     # (params, carry, env.Obs, key) -> (carry, action [8])
+def on_accelerator() -> bool:
+    return jax.default_backend() in ("gpu", "cuda", "rocm", "tpu")
+
+
+def resolve_backend(name: str) -> str:
+    """'auto' -> MJX on an accelerator, MuJoCo C on a CPU (where MJX is ~200x slower)."""
+    if name == "auto":
+        return "mjx" if on_accelerator() else "c"
+    if name not in BACKENDS:
+        raise ValueError(f"unknown backend {name!r}; expected 'auto' or one of {BACKENDS}")
+    return name
+
+
+Policy = env.Policy
 
 
 def _ramp(ctrl0, ctrl1, n: int):
@@ -121,7 +129,7 @@ class CPhysics:
 def _record(cfg: World, lay: env.Layout, states: env.State, frames, vels, actions, valids) -> Trajectories:
     """Assemble Trajectories from the final states and per-step arrays [B, T, ...]."""
     ev = states.events
-    obs13 = frames if not cfg.ball_velocity_obs else jnp.concatenate([frames[..., :11], frames[..., 14:]], -1)
+    obs13 = observation.to_width(frames, 13, xp=jnp)   # the record keeps 13 values and the velocity apart
     return Trajectories(
         obs=obs13, ball_vel=vels, actions=actions, valid=valids, goal=states.goal,
         hit=ev.hit, hit_step=ev.hit_step, landing=jnp.where(ev.hit[:, None], ev.landing, jnp.nan),
@@ -285,4 +293,4 @@ def batched_policy(policy: Policy, members: int | None = None):
 def hold_policy() -> Policy:
     """A policy that keeps the robot at its reset pose (events and physics tests)."""
     return Policy(init=lambda params, key: jnp.zeros(()),
-                  apply=lambda params, carry, obs, key: (carry, obs.frame[:8]))
+                  apply=lambda params, carry, obs, key: (carry, observation.joints(obs.frame)))

@@ -11,13 +11,13 @@ the two backends give the same events from the same motion:
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttmjx.world import ballphysics
+from ttmjx.world import ballphysics, observation
 from ttmjx.world.config import World
 
 # A velocity change this far from free flight within one physics step is a contact. Free-flight
@@ -60,6 +60,13 @@ class State(NamedTuple):
     launch: jax.Array     # [9] launch position, velocity, spin (kept for the record)
 
 
+class Policy(NamedTuple):
+    """Anything that acts in the task, for ONE throw (batched by vmap): the trained networks
+    (models.policy), the scripted striker, the ES policy, a hold policy."""
+    init: Callable      # (params, key) -> carry
+    apply: Callable     # (params, carry, Obs, key) -> (carry, action [8] joint targets)
+
+
 class Layout(NamedTuple):
     """Static qpos/qvel addresses (from the MuJoCo model, looked up by name once)."""
     ball_qpos: int
@@ -84,12 +91,10 @@ def no_events() -> Events:
 
 
 def frame(cfg: World, lay: Layout, qpos, qvel, goal):
-    """[O] observation frame: joints (8), ball position (3), [ball velocity (3)], goal (2)."""
-    parts = [qpos[jnp.array(lay.robot_qpos)], qpos[lay.ball_qpos:lay.ball_qpos + 3]]
-    if cfg.ball_velocity_obs:
-        parts.append(qvel[lay.ball_qvel:lay.ball_qvel + 3])
-    parts.append(goal)
-    return jnp.concatenate(parts).astype(jnp.float32)
+    """[O] observation frame (ttmjx.world.observation): joints, ball position, [ball velocity], goal."""
+    vel = qvel[lay.ball_qvel:lay.ball_qvel + 3] if cfg.ball_velocity_obs else None
+    return observation.make_frame(qpos[jnp.array(lay.robot_qpos)], qpos[lay.ball_qpos:lay.ball_qpos + 3],
+                                  goal, vel, xp=jnp).astype(jnp.float32)
 
 
 def home_pose(cfg: World, key):
@@ -211,12 +216,6 @@ def advance(cfg: World, lay: Layout, state: State, target, qpos, qvel, ball, pad
     frames = jnp.concatenate([state.frames[1:], f[None]])
     return state._replace(qpos=qpos.astype(jnp.float32), qvel=qvel.astype(jnp.float32),
                           target=target, t=state.t + 1, events=ev, frames=frames)
-
-
-def uniform_goals(key, n: int, table) -> jax.Array:
-    """[n, 2] goals uniform over the opponent's half of the table top (jittable; n static)."""
-    u = jax.random.uniform(key, (n, 2))
-    return jnp.stack([u[:, 0] * table.half_length, (2 * u[:, 1] - 1) * table.half_width], 1)
 
 
 def check_goals(goals, n: int | None = None) -> np.ndarray:

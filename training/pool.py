@@ -1,0 +1,109 @@
+"""The run's starting data: bootstrap demonstrations and robot logs, relabeled into the one
+cache, and the normalizer fixed from them (or, with no demonstrations, from a first look at the
+untrained policy's play)."""
+from __future__ import annotations
+
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from models.normalizer import Normalizer, identity_normalizer, normalizer_from_data
+from models.policy import init_params, make_policy
+from training.cache import Cache, add_episodes, empty_cache
+from training.data import data_normalizer, keep_for_training, relabel
+from training.runconfig import RunConfig
+from ttmjx.tools import demos
+from ttmjx.world import observation, record, thrower
+from ttmjx.world.backends import Backend, resolve_backend
+from ttmjx.world.goals import uniform_goals
+
+
+def load_demos(cfg: RunConfig, progress: bool) -> record.Trajectories | None:
+    """The bootstrap demonstrations: a dataset directory, or collected now (cached on disk in
+    the run directory so a resumed run does not collect them twice)."""
+    if cfg.demos == 0:
+        return None
+    if cfg.demo_dir:
+        traj, _ = record.load(cfg.demo_dir)
+        if traj.size < cfg.demos:
+            raise ValueError(f"{cfg.demo_dir} holds {traj.size} demonstrations, the run asks for demos={cfg.demos}")
+        return jax.tree.map(lambda x: x[:cfg.demos], traj)
+    path = os.path.join(cfg.run_dir, "demos")
+    if os.path.exists(os.path.join(path, "trajectories.npz")):
+        return record.load(path)[0]
+    backend = resolve_backend(cfg.backend)
+    traj = demos.collect(cfg.world, cfg.demo_source, cfg.demos, cfg.seed + 10_000, backend, progress=progress)
+    record.save(path, traj, {"source": cfg.demo_source, "distribution": cfg.world.throws.name,
+                             "seed": cfg.seed + 10_000, **demos.summary(traj, cfg.world)})
+    return traj
+
+
+def load_logs(paths, horizon: int) -> record.Trajectories | None:
+    """Robot logs (deploy episode directories) as one record padded/truncated to `horizon`."""
+    parts = []
+    for d in paths:
+        names = sorted(f[:-len(".meta.json")] for f in os.listdir(d) if f.endswith(".meta.json")
+                       and not f.endswith(".deploy.meta.json"))
+        if not names:
+            raise FileNotFoundError(f"--data {d}: no episode logs (*.meta.json) found")
+        for n in names:
+            parts.append(fit_horizon(record.load(d, n)[0], horizon))
+    return record.concat(parts) if parts else None
+
+
+def fit_horizon(traj: record.Trajectories, horizon: int) -> record.Trajectories:
+    """Pad (valid=False, last frame repeated) or truncate a record to `horizon` steps."""
+    t = traj.obs.shape[1]
+    if t == horizon:
+        return traj
+    def fit(x):
+        if x.ndim < 2 or x.shape[1] != t:
+            return x
+        if t > horizon:
+            return x[:, :horizon]
+        pad = np.repeat(x[:, -1:], horizon - t, 1)
+        return np.concatenate([x, np.zeros_like(pad) if x.dtype == bool else pad], 1)
+    return record.Trajectories(*(fit(np.asarray(x)) for x in traj))
+
+
+def append_record(cache: Cache, traj: record.Trajectories, cfg: RunConfig, demo: bool = False) -> Cache:
+    """Relabel and append a host record (demonstrations are flagged for the sampler)."""
+    return add_episodes(cache, jax.tree.map(jnp.asarray, record.to_numpy(traj)), cfg.world.table,
+                        cfg.train.goal_margin, demo=demo)
+
+
+def starting_pool(cfg: RunConfig, demos_: record.Trajectories | None, logs: record.Trajectories | None,
+                  backend: Backend, key) -> tuple[Cache, Normalizer, int]:
+    """(cache, normalizer, trajectories seen) at the start of a run."""
+    cache = empty_cache(cfg.train.capacity, cfg.world.horizon)
+    data = [x for x in (demos_, logs) if x is not None]
+    if not data:   # GCSL: no demonstrations
+        return cache, bootstrap_normalizer(cfg, backend, key), 0
+    traj = record.concat([record.to_numpy(x) for x in data])
+    keep = keep_for_training(traj, cfg.world.table, cfg.train.goal_margin)
+    if not np.any(keep):
+        raise ValueError("none of the demonstrations hit and landed near the opponent's half: nothing to imitate")
+    norm = data_normalizer(relabel(traj), cfg.policy.obs_size, keep, cfg.train.min_std)
+    # Demonstrations are marked (the sampler's demo_fraction); robot logs are practice.
+    for part, is_demo in ((demos_, True), (logs, False)):
+        if part is not None:
+            cache = append_record(cache, part, cfg, demo=is_demo)
+    return cache, norm, traj.size
+
+
+def bootstrap_normalizer(cfg: RunConfig, backend: Backend, key) -> Normalizer:
+    """GCSL has no demonstrations to normalize with: observation statistics from 64 episodes
+    of the untrained policy, action statistics from the robot's home pose and ranges."""
+    params = init_params(jax.random.fold_in(key, 2), cfg.policy, identity_normalizer(cfg.policy.obs_size))
+    n = 64
+    th = thrower.sample_throws(jax.random.fold_in(key, 3), cfg.world, n)
+    traj = backend.rollout(make_policy(cfg.policy), params, jax.random.fold_in(key, 4), th,
+                           np.asarray(uniform_goals(jax.random.fold_in(key, 5), n, cfg.world.table)))
+    obs = observation.to_width(jnp.asarray(traj.obs), cfg.policy.obs_size, jnp.asarray(traj.ball_vel), xp=jnp)
+    # Actions of an untrained net carry no scale: use the joint ranges' spread instead.
+    r = cfg.world.robot
+    norm = normalizer_from_data(obs, jnp.asarray(traj.actions), jnp.asarray(traj.valid), cfg.train.min_std)
+    span = (jnp.array(r.upper) - jnp.array(r.lower)) / 8
+    return norm._replace(act_mean=jnp.array(r.home), act_std=jnp.minimum(span, 1.0))

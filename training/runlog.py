@@ -1,0 +1,95 @@
+"""What a run reports: metrics.jsonl (one row per iteration), TensorBoard scalars, the progress
+bar and the learning-curve PNG."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+
+
+class MetricsLog:
+    """metrics.jsonl and TensorBoard scalars of one run directory."""
+
+    def __init__(self, run_dir: str):
+        self.run_dir = run_dir
+        self.path = os.path.join(run_dir, "metrics.jsonl")
+        self._writer = None
+
+    def rows(self) -> list[dict]:
+        if not os.path.exists(self.path):
+            return []
+        return [json.loads(line) for line in open(self.path) if line.strip()]
+
+    def start(self):
+        open(self.path, "w").close()
+
+    def truncate(self, iteration: int):
+        """Drop rows of iterations at or after `iteration` (a resumed run redoes them)."""
+        rows = [r for r in self.rows() if r["iteration"] < iteration]
+        with open(self.path, "w") as f:
+            f.writelines(json.dumps(r) + "\n" for r in rows)
+
+    def write(self, row: dict):
+        with open(self.path, "a") as f:
+            f.write(json.dumps(row) + "\n")
+        writer = self._tensorboard()
+        if writer:
+            for k, v in row.items():
+                if isinstance(v, (int, float)) and k not in ("trajectories", "iteration") and math.isfinite(v):
+                    writer.add_scalar(k, v, row["trajectories"])
+            writer.flush()
+
+    def _tensorboard(self):
+        if self._writer is None:
+            try:
+                from tensorboardX import SummaryWriter
+                self._writer = SummaryWriter(os.path.join(self.run_dir, "tensorboard"))
+            except Exception:  # TensorBoard logs are a convenience, never a reason to stop
+                self._writer = False
+        return self._writer
+
+    def close(self):
+        if self._writer:
+            self._writer.close()
+        self._writer = None
+
+
+def progress_bar(total: int, initial: int, enabled: bool):
+    from tqdm import tqdm
+    return tqdm(total=total, initial=initial, unit="traj", disable=not enabled, file=sys.stderr, dynamic_ncols=True)
+
+
+def postfix(row: dict) -> str:
+    """The progress bar's summary of an iteration."""
+    s = f"it {row['iteration']} loss {row['loss']:.3f}"
+    if "eval_within_30cm" in row:
+        s += f" | eval <=30cm {row['eval_within_30cm']:.0%} <=20cm {row['eval_within_20cm']:.0%}"
+    return s
+
+
+def plot_curves(metrics_path: str, png: str) -> str | None:
+    """Learning curves against total trajectories (demonstrations + practice)."""
+    if not os.path.exists(metrics_path):
+        return None
+    rows = [json.loads(line) for line in open(metrics_path) if line.strip()]
+    ev = [r for r in rows if "eval_within_30cm" in r]
+    if not ev:
+        return None
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    x = [r["trajectories"] for r in ev]
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.6))
+    a.plot(x, [100 * r["eval_within_30cm"] for r in ev], "o-", label="<= 30 cm")
+    a.plot(x, [100 * r["eval_within_20cm"] for r in ev], "s-", label="<= 20 cm")
+    a.plot(x, [100 * r["eval_hit_rate"] for r in ev], ":", color="gray", label="hit rate")
+    a.set_xlabel("total trajectories (demonstrations + practice)"), a.set_ylabel("% of balls")
+    a.legend(), a.grid(alpha=0.3)
+    b.plot(x, [r["eval_mean_dist"] for r in ev], "o-", color="C2")
+    b.set_xlabel("total trajectories"), b.set_ylabel("mean distance to goal (m)"), b.grid(alpha=0.3)
+    fig.suptitle(os.path.basename(os.path.dirname(os.path.abspath(metrics_path))))
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+    return png
