@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from models import (Normalizer, PolicyConfig, ensemble_size, identity_normalizer, init_ensemble,
-                    make_policy, member, normalizer_from_data, observation_vector,
+                    make_policy, member, normalizer_from_data,
                     predict_sequence, with_action_noise)
 from models.normalizer import denormalize_actions
-from ttmjx.world.record import frame_stack
+from ttmjx.world import observation
 
 
 class Obs(NamedTuple):     # the fields of ttmjx.world.env.Obs the policies read
@@ -32,17 +32,6 @@ def test_policy_config_rejects_bad_values():
     with pytest.raises(ValueError, match="obs_size=14"):
         PolicyConfig(obs_size=14)
     assert PolicyConfig("lstm").input_frames == 1 and PolicyConfig("framestack").input_frames == 8
-
-
-def test_observation_vector_orders_joints_ball_velocity_goal():
-    frame, vel = jnp.arange(13.0), 100 + jnp.arange(3.0)
-    assert observation_vector(frame, vel, 13) is frame
-    f16 = observation_vector(frame, vel, 16)
-    np.testing.assert_array_equal(f16, [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 100, 101, 102, 11, 12])
-    np.testing.assert_array_equal(observation_vector(f16, None, 13), frame)     # env 16 -> 13
-    assert observation_vector(f16, None, 16) is f16
-    with pytest.raises(ValueError, match="expected \\[..., 13\\] or \\[..., 16\\]"):
-        observation_vector(jnp.zeros(14), vel, 13)
 
 
 def test_normalizer_from_data_uses_valid_steps_and_floors_std():
@@ -86,8 +75,8 @@ def test_rollout_adapter_matches_training_sequence(kind, obs_size, env_width):
     t = 10
     obs = jax.random.normal(jax.random.PRNGKey(1), (t, 13))               # as the record stores it
     vel = jax.random.normal(jax.random.PRNGKey(3), (t, 3))
-    env_frames = observation_vector(obs, vel, env_width)                     # as the env builds it
-    stacks = frame_stack(env_frames[None], 3)[0]                             # [T, 3, env_width]
+    env_frames = observation.to_width(obs, env_width, vel, xp=jnp)                     # as the env builds it
+    stacks = observation.frame_stack(env_frames[None], 3)[0]                             # [T, 3, env_width]
     policy = make_policy(cfg)
 
     def step(carry, i):
@@ -95,8 +84,8 @@ def test_rollout_adapter_matches_training_sequence(kind, obs_size, env_width):
 
     _, actions = jax.lax.scan(step, policy.init(params, jax.random.PRNGKey(0)), jnp.arange(t))
     # the training side: record columns (13) + ball_vel, stacked as the sampler does
-    seq = observation_vector(frame_stack(obs[None], cfg.input_frames)[0],
-                             frame_stack(vel[None], cfg.input_frames)[0], obs_size)
+    seq = observation.to_width(observation.frame_stack(obs[None], cfg.input_frames)[0], obs_size,
+                               observation.frame_stack(vel[None], cfg.input_frames)[0], xp=jnp)
     want = denormalize_actions(params.norm, predict_sequence(cfg, params, seq))
     np.testing.assert_allclose(actions, want, rtol=1e-5, atol=1e-5)
     if kind == "framestack":

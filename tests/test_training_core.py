@@ -10,7 +10,8 @@ import pytest
 from models import (Normalizer, PolicyConfig, ensemble_size, identity_normalizer, init_params, member,
                     predict_sequence)
 from ttmjx.world.config import Table
-from ttmjx.world.record import Trajectories, frame_stack
+from ttmjx.world import observation
+from ttmjx.world.record import Trajectories
 from training import (Batch, TrainConfig, add_episodes, append, data_normalizer, empty_cache,
                       init_train_state, keep_for_training, make_train_loop, make_train_step,
                       masked_mse, member_update, policy_loss, relabel, sample_subsequences)
@@ -149,7 +150,7 @@ def test_windows_always_contain_the_hit_and_cover_valid_steps(cache):
 def test_window_frames_match_record_frame_stack(cache):
     k, s = 12, 4
     b = sample_subsequences(jax.random.PRNGKey(1), cache, k, 32, s)
-    stacks = frame_stack(np.asarray(cache.obs), s)                     # [C, T, s, 13]
+    stacks = observation.frame_stack(np.asarray(cache.obs), s)                     # [C, T, s, 13]
     t = np.minimum(np.asarray(b.start)[:, None] + np.arange(k), cache.horizon - 1)
     want = stacks[np.asarray(b.episode)[:, None], t]
     m = np.asarray(b.mask)

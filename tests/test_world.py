@@ -8,7 +8,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from ttmjx.world import backends, env, record
+from ttmjx.world import backends, env, observation, record
 from ttmjx.world.config import World
 
 Throw = namedtuple("Throw", "launch_pos launch_vel launch_spin aim")
@@ -76,11 +76,11 @@ def test_reset_observation_and_frame_stack_layout(c_backend):
 def test_record_frame_stack_matches_state_frames(c_backend):
     th = hand_throws([[1.7, 0.2, 0.95]] * 2, [[-6.5, -0.2, 1.0]] * 2)
     tr = c_backend.rollout(open_loop_policy(), None, jax.random.PRNGKey(1), th, np.zeros((2, 2)), horizon=12)
-    stacks = record.frame_stack(tr.obs, 4)
+    stacks = observation.frame_stack(tr.obs, 4)
     assert stacks.shape == (2, 12, 4, 13)
     np.testing.assert_array_equal(stacks[:, 0], np.repeat(tr.obs[:, :1], 4, 1))  # padded with frame 0
     np.testing.assert_array_equal(stacks[:, 6], tr.obs[:, 3:7])
-    assert record.frame_stack(jnp.asarray(tr.obs), 4).shape == (2, 12, 4, 13)
+    assert observation.frame_stack(jnp.asarray(tr.obs), 4).shape == (2, 12, 4, 13)
 
 
 def test_ball_velocity_observation_has_16_values():

@@ -59,7 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from ttmjx.world import backends
+from ttmjx.world import backends, observation
 from ttmjx.world.config import World
 
 ASSETS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "assets")
@@ -103,7 +103,7 @@ def init_params(cfg: World, key, hidden: int = 32) -> dict:
 
 def features(obs, params):
     """[14] normalised joints, ball position, ball velocity of one observation."""
-    x = jnp.concatenate([obs.frame[:11], obs.ball_vel])
+    x = jnp.concatenate([observation.joints_and_ball(obs.frame), obs.ball_vel])
     return (x - params["in_centre"]) / params["in_scale"]
 
 
@@ -126,9 +126,9 @@ def split_params(params: dict):
 
 def population_policy(fixed: dict, unravel: Callable) -> backends.Policy:
     """A policy whose params are the stacked trainable vectors [P, D] of a population; each
-    throw's candidate index is the goal's x (obs.frame[-2]) of its observation."""
+    throw's candidate index is the goal's x of its observation."""
     def apply(thetas, carry, obs, key):
-        idx = jnp.round(obs.frame[-2]).astype(jnp.int32)
+        idx = jnp.round(observation.goal(obs.frame)[0]).astype(jnp.int32)
         params = {**fixed, **unravel(thetas[idx])}
         return carry, mlp_action(params, obs)
     return backends.Policy(init=lambda params, key: jnp.zeros(()), apply=apply)
@@ -235,12 +235,12 @@ def shaped_reward(traj, paddle: Paddle) -> dict:
     hit_step = np.asarray(traj.hit_step)
     b, t = valid.shape
     steps = np.arange(t)[None, :]
-    ball = obs[..., 8:11]
+    ball = observation.ball_pos(obs)
     pre = valid & np.where(hit[:, None], steps <= hit_step[:, None], True)
     near = pre & (ball[..., 0] < NEAR_X)
     dist = np.full((b, t), np.inf)
     if near.any():
-        dist[near] = np.linalg.norm(paddle(obs[near][:, :8]) - ball[near], axis=-1)
+        dist[near] = np.linalg.norm(paddle(observation.joints(obs[near])) - ball[near], axis=-1)
     closest = np.minimum(dist.min(axis=1), CLOSE_CAP)
     post = valid & hit[:, None] & (steps > hit_step[:, None])
     vx = np.where(post, np.asarray(traj.ball_vel)[..., 0], -np.inf).max(axis=1)

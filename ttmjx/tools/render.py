@@ -14,8 +14,7 @@ import jax  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ttmjx.world import backends, env
-from ttmjx.world import scene  # noqa: E402
+from ttmjx.world import backends, env, observation, scene  # noqa: E402
 from ttmjx.world.config import World  # noqa: E402
 from ttmjx.world.record import Trajectories  # noqa: E402
 
@@ -42,8 +41,8 @@ def frames_of(cfg: World, traj: Trajectories, width: int = 480, height: int = 32
             n = int(np.asarray(traj.valid[b]).sum())
             for t in range(0, max(n, 1), every):
                 d.qpos[:] = m.qpos0
-                d.qpos[list(lay.robot_qpos)] = traj.obs[b, t, :8]
-                d.qpos[lay.ball_qpos:lay.ball_qpos + 3] = traj.obs[b, t, 8:11]
+                d.qpos[list(lay.robot_qpos)] = observation.joints(traj.obs[b, t])
+                d.qpos[lay.ball_qpos:lay.ball_qpos + 3] = observation.ball_pos(traj.obs[b, t])
                 mujoco.mj_forward(m, d)
                 renderer.update_scene(d, camera=camera)
                 out.append(renderer.render().copy())

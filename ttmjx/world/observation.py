@@ -84,8 +84,17 @@ def with_goal(frame, goal_xy, xp=np):
     return xp.concatenate([frame[..., :frame.shape[-1] - 2], g], axis=-1)
 
 
+def stack_index(t: int, k: int) -> np.ndarray:
+    """[t, k] frame indices of the stack at each of t steps, oldest first; steps before 0 repeat
+    frame 0 (an episode starts with its first frame repeated, as env.reset does)."""
+    return np.clip(np.arange(t)[:, None] - (k - 1) + np.arange(k)[None, :], 0, t - 1)
+
+
+def frame_stack(obs, k: int):
+    """[B, T, O] -> [B, T, k, O]: the last k frames at each step, oldest first (numpy or JAX)."""
+    return obs[:, stack_index(obs.shape[1], k)]
+
+
 def stack_at(frames, t: int, k: int):
-    """[T, O] frames -> [k, O] frame stack at step t, oldest first; steps before 0 repeat frame 0
-    (an episode starts with its first frame repeated, as env.reset does)."""
-    idx = np.clip(np.arange(t - k + 1, t + 1), 0, None)
-    return frames[idx]
+    """[T, O] frames -> [k, O]: the frame stack at step t."""
+    return frames[stack_index(t + 1, k)[t]]

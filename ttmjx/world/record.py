@@ -85,16 +85,6 @@ def concat(parts: list[Trajectories]) -> Trajectories:
     return Trajectories(*(np.concatenate([getattr(p, f) for p in parts]) for f in Trajectories._fields))
 
 
-def frame_stack(obs, k: int):
-    """[B, T, O] -> [B, T, k, O]: the last k frames at each step, oldest first, padded at the
-    episode start by repeating the first frame."""
-    import jax.numpy as jnp
-    xp = jnp if not isinstance(obs, np.ndarray) else np
-    t = obs.shape[1]
-    idx = xp.clip(xp.arange(t)[:, None] - (k - 1) + xp.arange(k)[None, :], 0, t - 1)
-    return obs[:, idx]
-
-
 def save(directory: str, traj: Trajectories, meta: dict, name: str = "trajectories") -> str:
     """Write `name`.npz and `name`.meta.json into `directory`; refuses to overwrite."""
     os.makedirs(directory, exist_ok=True)
