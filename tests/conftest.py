@@ -2,7 +2,6 @@
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-os.environ.setdefault("MUJOCO_GL", "osmesa")
 
 import jax  # noqa: E402
 

@@ -1,5 +1,7 @@
-"""How policies learn: relabeling, the device cache, the window sampler, the loss, ensemble
-updates and checkpoints. (Practice rollouts and the trainer loop build on these.)"""
+"""How policies learn: relabeling, the one device cache, windows, the loss, ensemble updates, the practice round, checkpoints and the run that composes them.
+
+Layer: above ttmjx.world, ttmjx.tools and models; below eval, deploy and the CLI (training never
+imports them: the run is given its evaluation as a function)."""
 from training.cache import Cache, add_episodes, append, empty_cache
 from training.config import TrainConfig
 from training.data import data_normalizer, keep_for_training, relabel

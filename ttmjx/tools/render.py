@@ -1,22 +1,64 @@
 """Headless video of a few throws (`ttmjx render`): an animated GIF written with Pillow.
 
-On a CPU machine MuJoCo renders through OSMesa (MUJOCO_GL=osmesa, Debian's libosmesa6);
-on a GPU machine through EGL.
+The OpenGL backend is chosen when rendering starts, never at import, so everything else works
+on a machine without one: EGL (Debian's libegl1; GPU drivers or Mesa), then OSMesa (Debian's
+libosmesa6). MUJOCO_GL=egl or MUJOCO_GL=osmesa forces one.
 """
 from __future__ import annotations
 
+import ctypes.util
 import os
 
-os.environ.setdefault("MUJOCO_GL", "osmesa")
-os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+import jax
+import mujoco
+import numpy as np
 
-import jax  # noqa: E402
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
+from ttmjx.world import backends, env, observation, scene
+from ttmjx.world.config import World
+from ttmjx.world.record import Trajectories
 
-from ttmjx.world import backends, env, observation, scene  # noqa: E402
-from ttmjx.world.config import World  # noqa: E402
-from ttmjx.world.record import Trajectories  # noqa: E402
+# (MUJOCO_GL name, shared library, Debian package), in order of preference.
+GL_BACKENDS = (("egl", "EGL", "libegl1"), ("osmesa", "OSMesa", "libosmesa6"))
+
+
+class NoOpenGLError(RuntimeError):
+    """No headless OpenGL here; the message names the system package to install."""
+
+
+def _context_class(name: str):
+    if name == "egl":
+        from mujoco.egl import GLContext
+    else:
+        from mujoco.osmesa import GLContext
+    return GLContext
+
+
+def gl_context_class():
+    """The GLContext class of the first headless OpenGL that opens a context here."""
+    forced = os.environ.get("MUJOCO_GL", "").lower()
+    tried = []
+    for name, lib, package in GL_BACKENDS:
+        if forced in ("egl", "osmesa") and name != forced:
+            continue
+        if ctypes.util.find_library(lib) is None:
+            tried.append(f"{name}: no lib{lib} (Debian package {package})")
+            continue
+        os.environ.setdefault("PYOPENGL_PLATFORM", name)   # read when PyOpenGL is first imported
+        try:
+            cls = _context_class(name)
+            cls(1, 1).free()
+            return cls
+        except Exception as e:  # a library that is present but cannot open a context
+            tried.append(f"{name}: {type(e).__name__}: {e}")
+    raise NoOpenGLError("no headless OpenGL to render with (" + "; ".join(tried) + "); install Debian's "
+                        "libegl1 or libosmesa6 (apt-get install libosmesa6)")
+
+
+def renderer(m, height: int, width: int) -> mujoco.Renderer:
+    """A MuJoCo renderer on the headless OpenGL chosen now."""
+    from mujoco.rendering.classic import gl_context
+    gl_context.GLContext = gl_context_class()   # mujoco.Renderer reads this attribute when it is built
+    return mujoco.Renderer(m, height, width)
 
 
 def policy_for(cfg: World, source: str) -> backends.Policy:
@@ -35,7 +77,7 @@ def frames_of(cfg: World, traj: Trajectories, width: int = 480, height: int = 32
     d = mujoco.MjData(m)
     lay = env.layout(m)
     out = []
-    renderer = mujoco.Renderer(m, height, width)
+    view = renderer(m, height, width)
     try:
         for b in range(traj.size):
             n = int(np.asarray(traj.valid[b]).sum())
@@ -44,10 +86,10 @@ def frames_of(cfg: World, traj: Trajectories, width: int = 480, height: int = 32
                 d.qpos[list(lay.robot_qpos)] = observation.joints(traj.obs[b, t])
                 d.qpos[lay.ball_qpos:lay.ball_qpos + 3] = observation.ball_pos(traj.obs[b, t])
                 mujoco.mj_forward(m, d)
-                renderer.update_scene(d, camera=camera)
-                out.append(renderer.render().copy())
+                view.update_scene(d, camera=camera)
+                out.append(view.render().copy())
     finally:
-        renderer.close()
+        view.close()
     return out
 
 
@@ -57,6 +99,9 @@ def render_throws(cfg: World, path: str, n: int = 3, seed: int = 0, source: str 
     from ttmjx.world import thrower
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
+    if os.path.isdir(path):
+        raise ValueError(f"--out {path!r} is a directory; expected a .gif file path")
+    gl_context_class()   # no OpenGL: say so before simulating anything
     key = jax.random.PRNGKey(seed)
     th = thrower.sample_throws(key, cfg, n)
     be = backends.Backend(cfg, "c")
