@@ -7,8 +7,10 @@ configuration saved WITH the checkpoint, never guessed from array shapes. Nothin
 """
 from __future__ import annotations
 
+import json
 import os
-from typing import NamedTuple
+import sys
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -19,6 +21,10 @@ from models.policy import PolicyParams
 from training.cache import Cache, empty_cache
 from training.runconfig import RunConfig, from_json
 from training.update import TrainState, acting_params, init_train_state
+from ttmjx.world import files
+
+CHECKSUMS = "ttmjx_checksums.json"   # {file: sha256} of a step's files, written after Orbax commits it
+FORMAT = 1                           # saved in the config item; 0 (absent): before checksums existed
 
 
 class Counters(NamedTuple):
@@ -78,13 +84,29 @@ def _manager(directory: str, keep: int | None = None, read_only: bool = False) -
 
 
 def save(directory: str, step: int, tree, config: dict, keep: int = 3) -> None:
-    """Write `tree` and `config` (JSON-ready dict) as checkpoint `step`; delete all but the
-    newest `keep`. An existing step is an error."""
+    """Write `tree` and `config` (JSON-ready dict) as checkpoint `step`, then the checksums of its
+    files; delete all but the newest `keep`. An existing step is an error."""
     if keep < 1:
         raise ValueError(f"checkpoint.save: keep={keep}, expected >= 1")
     with _manager(directory, keep) as mngr:
         mngr.save(int(step), args=ocp.args.Composite(state=ocp.args.StandardSave(_savable(tree)),
-                                                      config=ocp.args.JsonSave(config)))
+                                                      config=ocp.args.JsonSave({**config, "checkpoint_format": FORMAT})))
+    step_dir = os.path.join(os.path.abspath(directory), str(int(step)))
+    files.write_json(os.path.join(step_dir, CHECKSUMS), files.tree_checksums(step_dir, exclude=(CHECKSUMS,)))
+
+
+def damage(directory: str, step: int) -> str | None:
+    """Why checkpoint `step` cannot be trusted ('file: reason'), or None if its files match the
+    checksums written after it was saved."""
+    step_dir = os.path.join(os.path.abspath(directory), str(int(step)))
+    path = os.path.join(step_dir, CHECKSUMS)
+    if not os.path.exists(path):
+        return f"{path}: missing (the save did not finish)"
+    try:
+        expected = json.load(open(path))
+    except (OSError, ValueError) as e:
+        return f"{path}: unreadable ({e})"
+    return files.first_mismatch(step_dir, expected)
 
 
 def steps(directory: str) -> list[int]:
@@ -123,7 +145,7 @@ def restore(directory: str, like, step: int | None = None):
                                                          config=ocp.args.JsonRestore()))
     tree = jax.tree.map(lambda r, t: jax.random.wrap_key_data(r, impl=jax.random.key_impl(t))
                         if _is_key(t) else r, out.state, like)
-    return tree, out.config
+    return tree, {k: v for k, v in out.config.items() if k != "checkpoint_format"}
 
 
 def checkpoints_dir(path: str) -> str:
@@ -136,17 +158,46 @@ def checkpoints_dir(path: str) -> str:
     return ckpt
 
 
-def load_checkpoint(path: str, step: int | None = None) -> Loaded:
-    """Open checkpoint `step` (default: the newest) of a run directory or checkpoints directory:
-    read the configuration saved with it, build the structure from that configuration, restore.
-    A checkpoint that cannot be read raises ValueError naming the file and the reason."""
+def _warn(msg: str) -> None:
+    print(msg, file=sys.stderr)
+
+
+def load_checkpoint(path: str, step: int | None = None, warn: Callable[[str], None] = _warn) -> Loaded:
+    """Open checkpoint `step` of a run directory or checkpoints directory: read the configuration
+    saved with it, build the structure from that configuration, restore.
+
+    Without `step`, the newest INTACT checkpoint: a damaged newer one is skipped, saying so
+    through `warn`. A checkpoint that cannot be read raises ValueError naming the file and the
+    reason (FileNotFoundError when there is none)."""
     ckpt = checkpoints_dir(path)
-    step = _existing_step(ckpt, step)
+    if step is not None:
+        return _load_step(ckpt, _existing_step(ckpt, step))
+    saved = steps(ckpt)
+    if not saved:
+        raise FileNotFoundError(f"no checkpoint in {ckpt!r}")
+    problems = []
+    for s in reversed(saved):
+        try:
+            loaded = _load_step(ckpt, s)
+        except ValueError as e:
+            problems.append(str(e))
+            continue
+        if problems:
+            warn(f"[ttmjx] skipped damaged checkpoint(s): {'; '.join(problems)}; using checkpoint {s}")
+        return loaded
+    raise ValueError(f"no intact checkpoint in {ckpt}: {'; '.join(problems)}")
+
+
+def _load_step(ckpt: str, step: int) -> Loaded:
     where = os.path.join(ckpt, str(step))
     try:
         saved = restore_config(ckpt, step)
     except Exception as e:  # orbax raises several types for a missing or corrupt JSON item
         raise ValueError(f"{where}: cannot read the saved configuration ({type(e).__name__}: {e})") from e
+    # Checkpoints written before checksums existed (no checkpoint_format) are read unchecked.
+    bad = damage(ckpt, step) if saved.get("checkpoint_format", 0) >= 1 else None
+    if bad:
+        raise ValueError(f"checkpoint {step} is damaged: {bad}")
     try:
         cfg = from_json(saved)
     except (TypeError, ValueError, KeyError) as e:

@@ -152,10 +152,14 @@ PRESETS = {"paper-sim": paper_sim, "paper-sim-new": paper_sim_new, "tiny": tiny,
 PRESET_NAMES = ("default", "lfp", "gcsl", *PRESETS)
 
 
+# Keys saved beside the configuration in checkpoints that are run bookkeeping, not config.
+BOOKKEEPING = ("absorbed_data", "checkpoint_format")
+
+
 def from_json(d: dict) -> RunConfig:
     """Inverse of dataclasses.asdict for a RunConfig saved as JSON (config.json, checkpoints)."""
     from ttmjx.world.config import from_dict
-    d = {k: v for k, v in d.items() if k != "absorbed_data"}   # run bookkeeping, not config
+    d = {k: v for k, v in d.items() if k not in BOOKKEEPING}
     d["world"] = from_dict(World, d["world"])
     d["policy"] = PolicyConfig(**d["policy"])
     d["train"] = TrainConfig(**d["train"])

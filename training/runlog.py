@@ -7,6 +7,8 @@ import math
 import os
 import sys
 
+from ttmjx.world import files
+
 
 class MetricsLog:
     """metrics.jsonl and TensorBoard scalars of one run directory."""
@@ -22,17 +24,18 @@ class MetricsLog:
         return [json.loads(line) for line in open(self.path) if line.strip()]
 
     def start(self):
-        open(self.path, "w").close()
+        self._replace([])
 
     def truncate(self, iteration: int):
         """Drop rows of iterations at or after `iteration` (a resumed run redoes them)."""
-        rows = [r for r in self.rows() if r["iteration"] < iteration]
-        with open(self.path, "w") as f:
-            f.writelines(json.dumps(r) + "\n" for r in rows)
+        self._replace([r for r in self.rows() if r["iteration"] < iteration])
+
+    def _replace(self, rows: list[dict]):
+        """The whole file, written atomically (a crash leaves the old rows or the new ones)."""
+        files.write_bytes(self.path, "".join(json.dumps(files.json_safe(r)) + "\n" for r in rows).encode())
 
     def write(self, row: dict):
-        with open(self.path, "a") as f:
-            f.write(json.dumps(row) + "\n")
+        self._replace(self.rows() + [row])
         writer = self._tensorboard()
         if writer:
             for k, v in row.items():

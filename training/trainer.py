@@ -11,7 +11,6 @@ bit for bit, as an uninterrupted one (on a CPU, where the arithmetic is determin
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 import signal
@@ -26,6 +25,7 @@ from training.checkpoint import Checkpointed, Counters
 from training.practice import Practice
 from training.runconfig import RunConfig, to_json
 from training.update import acting_params, init_train_state
+from ttmjx.world import files
 from ttmjx.world.backends import Backend, resolve_backend
 
 # evaluate(params, backend, key) -> {"within_30cm": ..., ...}: eval.evaluate.training_evaluation
@@ -33,7 +33,7 @@ Evaluate = Callable[..., dict]
 
 # Fields that may differ when resuming (they do not change the computation).
 RESUME_MAY_CHANGE = {"run_dir", "data", "keep_checkpoints", "total_trajectories", "checkpoint_every",
-                     "absorbed_data"}
+                     "absorbed_data", "checkpoint_format"}
 
 
 # -- schedule -------------------------------------------------------------------------------
@@ -71,8 +71,21 @@ def phase(cfg: RunConfig, it: int) -> str:
 
 
 def write_config(cfg: RunConfig):
-    with open(os.path.join(cfg.run_dir, "config.json"), "w") as f:
-        json.dump(to_json(cfg), f, indent=2)
+    files.write_json(os.path.join(cfg.run_dir, "config.json"), to_json(cfg))
+
+
+class NonFiniteError(RuntimeError):
+    """Training produced a non-finite loss or parameters: the run stops, nothing is saved."""
+
+
+def check_finite(state, loss, it: int, last_saved: int):
+    """Raise NonFiniteError if the loss [N] or any parameter of `state` is NaN or infinite."""
+    bad = [name for name, tree in (("loss", loss), ("parameters", state.params.net), ("moving average", state.ema.net))
+           if not bool(jnp.all(jnp.asarray([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)])))]
+    if bad:
+        raise NonFiniteError(f"iteration {it}: non-finite {' and '.join(bad)} (learning rate too high, or "
+                             f"non-finite data?); stopped without saving: the last good checkpoint is "
+                             f"iteration {last_saved}")
 
 
 # -- the run -------------------------------------------------------------------------------
@@ -87,7 +100,8 @@ class Run:
                                  cfg.episodes_per_ssp, cfg.steps_between_ssp)
         self.ckpt_dir = os.path.join(cfg.run_dir, "checkpoints")
         self.metrics = runlog.MetricsLog(cfg.run_dir)
-        self._stop = False
+        self._stop = 0                   # the signal that asked the run to stop (0: none)
+        self.saved_at = -1               # iteration of the newest checkpoint written or restored
         self._absorbed: list[str] = []   # robot log directories already in the cache (absolute)
 
     # -- data --------------------------------------------------------------------------------
@@ -124,13 +138,14 @@ class Run:
     def save(self, ck: Checkpointed):
         checkpoint.save(self.ckpt_dir, int(ck.counters.iteration), ck,
                         {**to_json(self.cfg), "absorbed_data": self._absorbed}, keep=self.cfg.keep_checkpoints)
+        self.saved_at = int(ck.counters.iteration)
 
     def restore(self) -> Checkpointed | None:
         """The newest checkpoint of this run directory (None if there is none), refused if it
         was written with a configuration that computes differently."""
         if not checkpoint.steps(self.ckpt_dir):
             return None
-        loaded = checkpoint.load_checkpoint(self.ckpt_dir)
+        loaded = checkpoint.load_checkpoint(self.ckpt_dir, warn=self.log)
         mine = to_json(self.cfg)
         diff = {k for k in set(loaded.meta) | set(mine)
                 if loaded.meta.get(k) != mine.get(k) and k not in RESUME_MAY_CHANGE}
@@ -138,6 +153,7 @@ class Run:
             raise ValueError(f"{self.cfg.run_dir} holds a run with a different config (fields {sorted(diff)}); "
                              f"resume with the same config or choose a new run_dir")
         self._absorbed = list(loaded.meta.get("absorbed_data", []))
+        self.saved_at = loaded.step
         return loaded.ck
 
     def start(self) -> Checkpointed:
@@ -163,6 +179,7 @@ class Run:
         base = jnp.asarray(ck.key)
         throws = self.practice.round_throws(base, it) if practise else None
         state, cache, loss, stats = self.practice.iteration(ck.state, ck.cache, jax.random.fold_in(base, it), throws)
+        check_finite(state, loss, it, self.saved_at)
         new_traj = cfg.episodes_per_ssp if practise else 0
         ck = Checkpointed(state, cache, ck.key, Counters(
             jnp.int32(it + 1), ck.counters.trajectories + new_traj,
@@ -194,9 +211,9 @@ class Run:
                 before = int(ck.counters.trajectories)
                 ck, row = self.step(ck, it)
                 last = row if any(k.startswith("eval_") for k in row) else last
+                self.metrics.write(row)
                 if (it + 1) % cfg.checkpoint_every == 0 or it + 1 == stop_at or self._stop:
                     self.save(ck)
-                self.metrics.write(row)
                 bar.update(int(ck.counters.trajectories) - before)
                 bar.set_postfix_str(runlog.postfix(row))
                 if self._stop:
@@ -209,14 +226,15 @@ class Run:
         runlog.plot_curves(self.metrics.path, os.path.join(cfg.run_dir, "learning_curve.png"))
         return {"run_dir": cfg.run_dir, "iteration": int(ck.counters.iteration),
                 "trajectories": int(ck.counters.trajectories), "finished": int(ck.counters.iteration) >= n_tot,
+                "stopped_by_signal": self._stop,
                 **{k: v for k, v in last.items() if k.startswith("eval_")}}
 
     # -- signals -----------------------------------------------------------------------------
     def _install_signals(self):
         def handler(signum, frame):
-            if self._stop:  # a second Ctrl-C: stop now (the last checkpoint stays)
-                raise KeyboardInterrupt
-            self._stop = True
+            if self._stop:  # a second signal: exit now (the last checkpoint stays)
+                os._exit(128 + signum)
+            self._stop = signum
             self.log(f"\n[ttmjx] {signal.Signals(signum).name}: finishing this iteration, saving a checkpoint, "
                      f"then exiting (resume with the same command)")
         self._old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}

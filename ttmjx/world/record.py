@@ -12,6 +12,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ttmjx.world import files
+
 SCHEMA_VERSION = 1
 
 # Column layout of one observation frame (13 values; 16 with ball velocity).
@@ -78,6 +80,22 @@ def validate(traj: Trajectories, where: str = "trajectories") -> None:
         want = (b,) + tuple(t if s is None else s for s in FIELD_SHAPES[f])
         if tuple(np.shape(x)) != want:
             raise RecordError(f"{where}: field {f!r} has shape {tuple(np.shape(x))}, expected {want}")
+    check_finite(traj, where)
+
+
+def check_finite(traj: Trajectories, where: str = "trajectories") -> None:
+    """Raise RecordError naming the field and the first episode and step if an observation,
+    ball velocity or action of a valid step, or a goal, is NaN or infinite (training on it
+    would turn the weights into NaN)."""
+    valid = np.asarray(traj.valid, bool)
+    for f in ("obs", "ball_vel", "actions"):
+        bad = valid & ~np.all(np.isfinite(np.asarray(getattr(traj, f), np.float64)), axis=-1)
+        if bad.any():
+            b, t = np.argwhere(bad)[0]
+            raise RecordError(f"{where}: field {f!r} is not finite at episode {b}, step {t}")
+    bad = ~np.all(np.isfinite(np.asarray(traj.goal, np.float64)), axis=-1)
+    if bad.any():
+        raise RecordError(f"{where}: field 'goal' is not finite at episode {int(np.argwhere(bad)[0][0])}")
 
 
 def concat(parts: list[Trajectories]) -> Trajectories:
@@ -98,9 +116,8 @@ def save(directory: str, traj: Trajectories, meta: dict, name: str = "trajectori
     tmp = path + ".tmp.npz"
     np.savez(tmp, **traj._asdict())
     os.replace(tmp, path)  # atomic: a crash never leaves a half-written dataset under the name
-    with open(meta_path, "w") as f:
-        json.dump({"schema_version": SCHEMA_VERSION, "n": traj.size,
-                   "horizon": int(traj.obs.shape[1]), **meta}, f, indent=2)
+    files.write_json(meta_path, {"schema_version": SCHEMA_VERSION, "n": traj.size,
+                                 "horizon": int(traj.obs.shape[1]), **meta})
     return path
 
 

@@ -1,0 +1,75 @@
+"""Files that are whole or absent: atomic writes (write, flush, fsync, rename) and checksums.
+
+A crash or a full disk at any moment leaves either the old file or the new one under the name,
+never a half-written one. Standard library only (the robot side uses it too).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import tempfile
+
+
+def write_bytes(path: str, data: bytes) -> None:
+    """Write `data` to `path` atomically."""
+    directory = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def json_safe(x):
+    """Non-finite floats -> None, recursively (JSON has no NaN or infinity)."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [json_safe(v) for v in x]
+    return x
+
+
+def write_json(path: str, obj, indent: int | None = 2) -> None:
+    """Write `obj` as strict JSON (non-finite floats as null) atomically."""
+    write_bytes(path, (json.dumps(json_safe(obj), indent=indent, allow_nan=False) + "\n").encode())
+
+
+def sha256_file(path: str) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def tree_checksums(directory: str, exclude: tuple[str, ...] = ()) -> dict[str, str]:
+    """{relative path: sha256} of every file under `directory` (names in `exclude` skipped)."""
+    out = {}
+    for dirpath, _, names in os.walk(directory):
+        for n in sorted(names):
+            rel = os.path.relpath(os.path.join(dirpath, n), directory)
+            if n not in exclude:
+                out[rel] = sha256_file(os.path.join(dirpath, n))
+    return dict(sorted(out.items()))
+
+
+def first_mismatch(directory: str, expected: dict[str, str]) -> str | None:
+    """The first file under `directory` that is missing or differs from `expected`, as
+    'path: reason'; None if all match."""
+    for rel, digest in expected.items():
+        path = os.path.join(directory, rel)
+        if not os.path.exists(path):
+            return f"{path}: missing"
+        if sha256_file(path) != digest:
+            return f"{path}: checksum mismatch"
+    return None
