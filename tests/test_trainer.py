@@ -255,3 +255,46 @@ def test_gcsl_starts_from_zero_demonstrations(tmp_path):
     row = json.loads(open(os.path.join(cfg.run_dir, "metrics.jsonl")).read().splitlines()[-1])
     assert out["trajectories"] == cfg.episodes_per_ssp and row["phase"] == "practice"
     assert row["cache_size"] == row["practice_kept"]
+
+
+# -- faults: damaged checkpoints, non-finite training, non-finite data ----------------------
+def test_a_damaged_newest_checkpoint_is_skipped_and_the_resume_ends_where_it_would_have(trained, demo_dir, tmp_path):
+    full_dir, _ = trained
+    cfg = tiny(demo_dir, tmp_path / "damaged")
+    train(cfg).run(max_iterations=3)
+    ckpt = os.path.join(cfg.run_dir, "checkpoints")
+    newest = checkpoint.steps(ckpt)[-1]
+    victim = max((os.path.join(d, f) for d, _, fs in os.walk(os.path.join(ckpt, str(newest), "state")) for f in fs),
+                 key=os.path.getsize)
+    with open(victim, "r+b") as f:          # flip bytes in the largest array file
+        f.seek(os.path.getsize(victim) // 2)
+        f.write(b"\xff\x00\xff\x00")
+    with pytest.raises(ValueError, match=f"checkpoint {newest} is damaged: .*checksum mismatch"):
+        checkpoint.load_checkpoint(cfg.run_dir, step=newest)
+    said = []
+    loaded = checkpoint.load_checkpoint(cfg.run_dir, warn=said.append)
+    assert loaded.step < newest and "skipped damaged checkpoint" in said[0] and victim in said[0]
+    train(cfg).run()                         # resumes from the intact one, redoes the rest
+    for x, y in zip(jax.tree.leaves(final_params(str(full_dir))), jax.tree.leaves(final_params(cfg.run_dir))):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_non_finite_training_stops_without_saving(demo_dir, tmp_path):
+    cfg = tiny(demo_dir, tmp_path / "nan")
+    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, learning_rate=float("inf")))
+    from training.trainer import NonFiniteError
+    with pytest.raises(NonFiniteError, match="iteration 0: non-finite .*last good checkpoint is iteration 0"):
+        Run(cfg, progress=False).run()
+    assert checkpoint.steps(os.path.join(cfg.run_dir, "checkpoints")) == [0]
+
+
+def test_non_finite_data_is_refused_with_the_field_and_step(demo_dir, tmp_path):
+    traj, _ = record.load(demo_dir)
+    obs = np.array(traj.obs)
+    obs[3, 2, 9] = np.inf                           # as a broken logger might write
+    bad = traj._replace(obs=obs)
+    with pytest.raises(record.RecordError, match="field 'obs' is not finite at episode 3, step 2"):
+        record.validate(bad, "demos")
+    with pytest.raises(record.RecordError, match="not finite"):
+        record.save(str(tmp_path / "bad"), bad, {"source": "test"})
+    assert not os.path.exists(tmp_path / "bad" / "trajectories.npz")
