@@ -19,10 +19,15 @@ class PolicyConfig:
     obs_size:   13 (joints, ball pos, goal) or 16 (joints, ball pos, ball vel, goal).
     """
     kind: str = "lstm"
+    """lstm (the paper's policy) or framestack (an MLP on the last frame_stack frames)."""
     hidden: int = 1024
+    """Units per layer."""
     layers: int = 2
+    """LSTM cells or MLP hidden layers."""
     obs_size: int = 13
-    frame_stack: int = 8     # used by kind="framestack" only
+    """Values per frame: 13 (joints, ball position, goal) or 16 (with the ball velocity)."""
+    frame_stack: int = 8
+    """Frames the MLP sees (kind=framestack only)."""
 
     def __post_init__(self):
         if self.kind not in POLICY_KINDS:

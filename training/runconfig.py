@@ -17,12 +17,14 @@ from ttmjx.world.config import World
 class RunConfig:
     """A GoalsEye run (Algorithm 1) from demonstrations to evaluation."""
     preset: str = "default"
+    """The preset the defaults came from (ttmjx train --preset)."""
     world: World = World()
     policy: PolicyConfig = PolicyConfig()
     train: TrainConfig = TrainConfig()
     demos: int = 1000
     """Bootstrap demonstrations (0 = GCSL)."""
     demo_source: Literal["scripted", "es"] = "scripted"
+    """Bootstrap demonstrator: the scripted striker or the ES policy (ttmjx demos --source)."""
     demo_dir: str | None = None
     """Use this dataset (ttmjx demos --out) instead of collecting demonstrations."""
     data: tuple[str, ...] = ()
@@ -40,11 +42,15 @@ class RunConfig:
     eval_every: int = 1000
     """Evaluate every this many practice trajectories (and at the LFP point and the end)."""
     eval_goals: int = 200
+    """Uniform goals per evaluation."""
     seed: int = 0
+    """Seed of everything random in the run (a non-zero seed without --run-dir appends -seedN)."""
     backend: Literal["auto", "c", "mjx"] = "auto"
     """auto: MJX on an accelerator, MuJoCo C on a CPU."""
     run_dir: str = "runs/default"
+    """Where config.json, metrics.jsonl, the curves and checkpoints/ go; the same command resumes it."""
     keep_checkpoints: int = 3
+    """Newest checkpoints kept (older ones deleted); a damaged newest one falls back to the next."""
     checkpoint_every: int = 1
     """Save every this many iterations (and at the end and on SIGTERM/Ctrl-C)."""
 
@@ -61,6 +67,12 @@ class RunConfig:
         if self.world.frame_stack != self.policy.frame_stack and self.policy.kind == "framestack":
             raise ValueError(f"policy.frame_stack={self.policy.frame_stack} differs from "
                              f"world.frame_stack={self.world.frame_stack}")
+        if self.train.window > self.world.horizon:
+            raise ValueError(f"train.window={self.train.window} is longer than an episode "
+                             f"({self.world.horizon} control steps); expected <= {self.world.horizon}")
+        if self.episodes_per_ssp % self.train.members:
+            raise ValueError(f"episodes_per_ssp={self.episodes_per_ssp} must be a multiple of "
+                             f"train.members={self.train.members} (every member practises an equal share)")
         if self.policy.obs_size != self.world.obs_size:
             raise ValueError(f"policy.obs_size={self.policy.obs_size} but the world observes "
                              f"{self.world.obs_size} values (world.ball_velocity_obs={self.world.ball_velocity_obs})")

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from training import checkpoint, pool, runlog
+from training import budget, checkpoint, pool, runlog
 from training.checkpoint import Checkpointed, Counters
 from training.practice import Practice
 from training.runconfig import RunConfig, to_json
@@ -95,6 +95,7 @@ class Run:
 
     def __init__(self, cfg: RunConfig, evaluate: Evaluate | None = None, progress: bool = True, log=print):
         self.cfg, self.evaluate, self.progress, self.log = cfg, evaluate, progress, log
+        budget.check_fits(cfg)   # refuse what cannot fit before anything is compiled
         self.backend = Backend(cfg.world, resolve_backend(cfg.backend))
         self.practice = Practice(cfg.world, cfg.policy, cfg.train, self.backend,
                                  cfg.episodes_per_ssp, cfg.steps_between_ssp)

@@ -194,10 +194,15 @@ class World:
     """Physics time step (s); None: the largest step <= max_physics_dt that divides the control
     period (1 ms at 20 and 100 Hz, 1/1020 s at 60 Hz). Contacts are calibrated near 1 ms."""
     control_hz: int = 100
+    """Policy steps per second: 20 (the real robot), 60 or 100 (the paper's simulation)."""
     max_physics_dt: float = 0.001
+    """Largest physics step (s) physics_dt may take when it is derived from control_hz."""
     episode_s: float = 1.6
-    ball_velocity_obs: bool = False   # True: 16-value observations (the paper's original sim)
+    """Episode time limit (s) from the launch."""
+    ball_velocity_obs: bool = False
+    """True: 16-value observations with the ball velocity (the paper's original sim)."""
     frame_stack: int = 8
+    """Frames in the observation stack (the frame-stack policy reads them)."""
 
     def __post_init__(self):
         if not isinstance(self.control_hz, int) or self.control_hz <= 0:

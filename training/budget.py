@@ -1,0 +1,65 @@
+"""Will a run fit? Device memory needed by a configuration, estimated before anything is
+compiled, so an oversized cache, ensemble or batch is refused up front with the field to lower
+instead of running out of memory minutes later."""
+from __future__ import annotations
+
+import os
+
+import jax
+import numpy as np
+
+from training.runconfig import RunConfig
+
+GiB = 1024 ** 3
+FLOAT = 4
+# Values stored per cached step: obs (13) + ball velocity (3) + action (8) + valid.
+CACHE_STEP_VALUES = 13 + 3 + 8 + 1
+# Optimizer-visible copies of the weights: params, Adam mu and nu, the moving average.
+WEIGHT_COPIES = 4
+# Bytes of MJX simulation state per episode, measured from mjx.make_data on the scene (~30 kB),
+# held for the rollout's carry and per-step outputs with headroom.
+MJX_EPISODE_BYTES = 64 * 1024
+
+
+def device_bytes() -> int:
+    """Memory of the default device: the accelerator's limit, or this machine's RAM on a CPU."""
+    stats = jax.devices()[0].memory_stats() or {}
+    if "bytes_limit" in stats:
+        return int(stats["bytes_limit"])
+    return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+
+
+def weight_count(cfg: RunConfig) -> int:
+    """Trainable values of one member (from the network's shapes, nothing allocated)."""
+    from models.normalizer import identity_normalizer
+    from models.policy import init_params
+    shapes = jax.eval_shape(lambda: init_params(jax.random.PRNGKey(0), cfg.policy,
+                                                identity_normalizer(cfg.policy.obs_size)).net)
+    return int(sum(np.prod(x.shape) for x in jax.tree.leaves(shapes)))
+
+
+def needs(cfg: RunConfig) -> dict[str, int]:
+    """Estimated bytes per part of the run: {part: bytes}."""
+    t = cfg.world.horizon
+    tc, pc = cfg.train, cfg.policy
+    act_per_window = tc.window * pc.input_frames * pc.obs_size + tc.window * pc.hidden * pc.layers * 8
+    return {
+        "cache (train.capacity x episode steps)": tc.capacity * t * CACHE_STEP_VALUES * FLOAT,
+        "ensemble weights (train.members x network)": tc.members * weight_count(cfg) * WEIGHT_COPIES * FLOAT,
+        "update batch (train.members x train.batch-size x train.window)":
+            tc.members * tc.batch_size * act_per_window * FLOAT * 3,
+        "practice rollouts (episodes-per-ssp)": cfg.episodes_per_ssp * (t * CACHE_STEP_VALUES * FLOAT
+                                                                         + MJX_EPISODE_BYTES),
+    }
+
+
+def check_fits(cfg: RunConfig, available: int | None = None, fraction: float = 0.9) -> dict[str, int]:
+    """Raise ValueError naming the largest part if the estimate exceeds `fraction` of the
+    device's memory; returns the estimate."""
+    parts = needs(cfg)
+    total, have = sum(parts.values()), available if available is not None else device_bytes()
+    if total > fraction * have:
+        name, big = max(parts.items(), key=lambda kv: kv[1])
+        raise ValueError(f"this run needs ~{total / GiB:.1f} GiB of device memory, {big / GiB:.1f} GiB of it for the "
+                         f"{name}; the device has {have / GiB:.1f} GiB: lower those settings")
+    return parts
