@@ -298,3 +298,30 @@ def test_non_finite_data_is_refused_with_the_field_and_step(demo_dir, tmp_path):
     with pytest.raises(record.RecordError, match="not finite"):
         record.save(str(tmp_path / "bad"), bad, {"source": "test"})
     assert not os.path.exists(tmp_path / "bad" / "trajectories.npz")
+
+
+@pytest.mark.parametrize("fail_at", [2, 5, 9])
+def test_a_full_disk_at_any_write_loses_nothing(trained, demo_dir, tmp_path, monkeypatch, fail_at):
+    """Every write (metrics, config, checksums) goes through ttmjx.world.files; the disk fills at
+    its `fail_at`-th call: the run stops with the OSError, and the same command resumes to the
+    uninterrupted result."""
+    import errno
+    from ttmjx.world import files
+    full_dir, _ = trained
+    cfg = tiny(demo_dir, tmp_path / f"full{fail_at}")
+    real, calls = files.write_bytes, []
+
+    def filling(path, data):
+        calls.append(path)
+        if len(calls) == fail_at:
+            raise OSError(errno.ENOSPC, "No space left on device", path)
+        return real(path, data)
+    monkeypatch.setattr(files, "write_bytes", filling)
+    with pytest.raises(OSError, match="No space left"):
+        train(cfg).run()
+    monkeypatch.setattr(files, "write_bytes", real)
+    train(cfg).run()
+    for x, y in zip(jax.tree.leaves(final_params(str(full_dir))), jax.tree.leaves(final_params(cfg.run_dir))):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    rows = [json.loads(line) for line in open(os.path.join(cfg.run_dir, "metrics.jsonl"))]
+    assert [r["iteration"] for r in rows] == list(range(6))

@@ -95,6 +95,16 @@ def save(directory: str, step: int, tree, config: dict, keep: int = 3) -> None:
     files.write_json(os.path.join(step_dir, CHECKSUMS), files.tree_checksums(step_dir, exclude=(CHECKSUMS,)))
 
 
+def discard_after(directory: str, step: int) -> list[int]:
+    """Delete the checkpoints newer than `step` (damaged ones a resume skipped: the run redoes
+    them under the same numbers); returns their steps."""
+    import shutil
+    gone = [s for s in steps(directory) if s > step]
+    for s in gone:
+        shutil.rmtree(os.path.join(os.path.abspath(directory), str(s)))
+    return gone
+
+
 def damage(directory: str, step: int) -> str | None:
     """Why checkpoint `step` cannot be trusted ('file: reason'), or None if its files match the
     checksums written after it was saved."""
@@ -158,6 +168,18 @@ def checkpoints_dir(path: str) -> str:
     return ckpt
 
 
+DAMAGED = " is damaged: "
+
+
+class NoIntactCheckpoint(ValueError):
+    """Every checkpoint failed to load; `all_unfinished`: all of them failed their checksums
+    (interrupted or corrupted saves), none for a configuration this version cannot read."""
+
+    def __init__(self, msg: str, all_unfinished: bool):
+        super().__init__(msg)
+        self.all_unfinished = all_unfinished
+
+
 def _warn(msg: str) -> None:
     print(msg, file=sys.stderr)
 
@@ -185,7 +207,8 @@ def load_checkpoint(path: str, step: int | None = None, warn: Callable[[str], No
         if problems:
             warn(f"[ttmjx] skipped damaged checkpoint(s): {'; '.join(problems)}; using checkpoint {s}")
         return loaded
-    raise ValueError(f"no intact checkpoint in {ckpt}: {'; '.join(problems)}")
+    raise NoIntactCheckpoint(f"no intact checkpoint in {ckpt}: {'; '.join(problems)}",
+                             all_unfinished=all(DAMAGED in p for p in problems))
 
 
 def _load_step(ckpt: str, step: int) -> Loaded:
@@ -197,7 +220,7 @@ def _load_step(ckpt: str, step: int) -> Loaded:
     # Checkpoints written before checksums existed (no checkpoint_format) are read unchecked.
     bad = damage(ckpt, step) if saved.get("checkpoint_format", 0) >= 1 else None
     if bad:
-        raise ValueError(f"checkpoint {step} is damaged: {bad}")
+        raise ValueError(f"checkpoint {step}{DAMAGED}{bad}")
     try:
         cfg = from_json(saved)
     except (TypeError, ValueError, KeyError) as e:

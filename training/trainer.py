@@ -146,7 +146,15 @@ class Run:
         was written with a configuration that computes differently."""
         if not checkpoint.steps(self.ckpt_dir):
             return None
-        loaded = checkpoint.load_checkpoint(self.ckpt_dir, warn=self.log)
+        try:
+            loaded = checkpoint.load_checkpoint(self.ckpt_dir, warn=self.log)
+        except checkpoint.NoIntactCheckpoint as e:
+            if not e.all_unfinished:
+                raise
+            self.log(f"[ttmjx] {e}; starting the run afresh")
+            checkpoint.discard_after(self.ckpt_dir, -1)
+            return None
+        checkpoint.discard_after(self.ckpt_dir, loaded.step)
         mine = to_json(self.cfg)
         diff = {k for k in set(loaded.meta) | set(mine)
                 if loaded.meta.get(k) != mine.get(k) and k not in RESUME_MAY_CHANGE}
