@@ -325,3 +325,25 @@ def test_a_full_disk_at_any_write_loses_nothing(trained, demo_dir, tmp_path, mon
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     rows = [json.loads(line) for line in open(os.path.join(cfg.run_dir, "metrics.jsonl"))]
     assert [r["iteration"] for r in rows] == list(range(6))
+
+
+def test_kill_9_at_random_moments_then_the_same_command_resumes_to_the_same_result(trained, demo_dir, tmp_path):
+    """SIGKILL (no handler can run) at random moments of `ttmjx train`: each rerun of the same
+    command continues, and the end equals the uninterrupted run bit for bit."""
+    full_dir, _ = trained
+    run_dir = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "ttmjx.cli", "train", "--preset", "tiny", "--run-dir", str(run_dir),
+           "--demo-dir", demo_dir, "--json"]
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(float(rng.uniform(8.0, 25.0)))      # start-up, compiles and a few iterations
+        p.kill()
+        p.wait()
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert json.loads(done.stdout.strip().splitlines()[-1])["finished"]
+    for x, y in zip(jax.tree.leaves(final_params(str(full_dir))), jax.tree.leaves(final_params(str(run_dir)))):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    rows = [json.loads(line) for line in open(run_dir / "metrics.jsonl")]
+    assert [r["iteration"] for r in rows] == list(range(6))
