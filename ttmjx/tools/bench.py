@@ -1,6 +1,7 @@
 """Throughput of the simulated world (`ttmjx bench`): physics steps and throws per second."""
 from __future__ import annotations
 
+import os
 import time
 
 import jax
@@ -62,7 +63,7 @@ def task_rate(cfg: World, backend: str, batch: int, repeats: int = 2, nthread: i
 
 def bench(cfg: World, backend: str, batch: int, nthread: int | None = None) -> dict:
     out = task_rate(cfg, backend, batch, nthread=nthread)
-    out["device"] = str(jax.devices()[0].device_kind) if backend == "mjx" else f"cpu x{nthread or __import__('os').cpu_count()}"
+    out["device"] = str(jax.devices()[0].device_kind) if backend == "mjx" else f"cpu x{nthread or os.cpu_count()}"
     out["mujoco"] = mujoco.__version__
     if backend == "c":
         out["rollout_baseline_steps_per_s"] = raw_rollout_rate(cfg, batch, nthread)
