@@ -11,10 +11,12 @@ import dataclasses
 
 import numpy as np
 
+from ttmjx.world import observation
 from ttmjx.world.config import JOINT_NAMES, Robot, World
 
-# The real robot has no ball velocity (paper, Policy architecture): 13-value frames only.
-REAL_OBS_SIZE = 13
+# The real robot has no ball velocity (paper, Policy architecture): frames of joints, ball
+# position and goal only, ttmjx.world.observation's narrow layout (13 values).
+REAL_OBS_SIZE = min(observation.WIDTHS)
 # The robot an export is made for (deploy/export.py checks it at load): ABB IRB 120T on a
 # two-axis gantry, joints JOINT_NAMES. Another robot (or a changed joint order) gets a new id.
 ROBOT_MODEL_ID = "abb-irb120t-on-2axis-gantry/v1"

@@ -24,7 +24,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ttmjx.world import record
+from deploy.contract import REAL_OBS_SIZE
+from ttmjx.world import observation, record
 from ttmjx.world.record import Trajectories
 
 EXTRAS_SUFFIX = ".deploy.npz"
@@ -39,11 +40,11 @@ class Episode(NamedTuple):
 class EpisodeLog:
     """Arrays of one episode, filled tick by tick."""
 
-    def __init__(self, horizon: int, goal: np.ndarray):
+    def __init__(self, horizon: int, goal: np.ndarray, obs_size: int = REAL_OBS_SIZE):
         T = horizon
         self.horizon, self.goal = T, np.asarray(goal, np.float32)
         nan = lambda *s: np.full(s, np.nan)  # noqa: E731
-        self.obs = np.zeros((T, 13), np.float32)
+        self.obs = np.zeros((T, observation.check_width(obs_size)), np.float32)
         self.ball_vel = np.zeros((T, 3), np.float32)
         self.valid = np.zeros(T, bool)
         self.t_grid, self.t_wake, self.t_sent = nan(T), nan(T), nan(T)
@@ -62,7 +63,7 @@ class EpisodeLog:
 
     def tick(self, n: int, *, t_grid, frame, ball, joint, command, faults, executed,
              t_wake=np.nan, t_sent=np.nan, raw_action=None) -> None:
-        """Record tick n. ball/joint: the Interpolated used; frame [13]; command [8]."""
+        """Record tick n. ball/joint: the Interpolated used; frame [O]; command [8]."""
         self.t_grid[n], self.t_wake[n], self.t_sent[n] = t_grid, t_wake, t_sent
         self.obs[n], self.ball_vel[n] = frame, ball.slope
         self.valid[n], self.executed[n] = True, executed
@@ -104,7 +105,7 @@ class EpisodeLog:
             actions=np.nan_to_num(self.commands, nan=0.0)[None], valid=self.valid[None],
             goal=self.goal[None], hit=f, hit_step=np.full(1, -1, np.int32), landing=nan2,
             on_opponent=f, bounce_own=f, net=f,
-            launch_pos=self.obs[first, 8:11][None], launch_vel=self.ball_vel[first][None],
+            launch_pos=observation.ball_pos(self.obs[first])[None], launch_vel=self.ball_vel[first][None],
             launch_spin=nan3, aim=nan2))
 
 

@@ -15,6 +15,7 @@ import math
 import numpy as np
 
 from deploy.contract import Contract
+from ttmjx.world import observation
 
 
 class FakeClock:
@@ -147,7 +148,7 @@ class FollowBallPolicy:
         return None
 
     def step(self, state, frame, frames):
-        ball = frame[8:11]
+        ball = observation.ball_pos(frame)
         a = self.home.copy()
         a[1] = np.clip(ball[1], -0.6, 0.6)
         a[2] = 0.8 * np.tanh(-ball[0] - 0.5)

@@ -1,7 +1,9 @@
-"""Goals for the episodes of a session: from the command line, a file or a list.
+"""Goals for the episodes of a session: from the command line, a file or a list, the five-goal
+protocol or uniform over the opponent's half (`session_goals`).
 
 A goal is (x, y) in metres on the opponent's half (docs/DESIGN.md frame). One goal per episode;
-`episode_goals` repeats each goal (the paper's five-goal evaluation: 5 goals x 5 attempts).
+`episode_goals` repeats each goal (the paper's five-goal evaluation: 5 goals x 5 attempts). The
+five goals and the uniform draw are ttmjx.world.goals', as practice and evaluation use them.
 """
 from __future__ import annotations
 
@@ -11,6 +13,7 @@ import os
 import numpy as np
 
 from ttmjx.world.config import Table, opponent_half
+from ttmjx.world.goals import five_goals, goals_from_unit
 
 
 def check_goals(goals) -> np.ndarray:
@@ -94,3 +97,24 @@ def episode_goals(goals, repeat: int = 1) -> np.ndarray:
     if repeat < 1:
         raise ValueError(f"repeat={repeat}, expected >= 1")
     return np.repeat(check_goals(goals), repeat, axis=0)
+
+
+def uniform_session_goals(n: int, seed: int = 0, table: Table = Table()) -> np.ndarray:
+    """[n, 2] float32 goals uniform over the opponent's half: ttmjx.world.goals.goals_from_unit
+    of numpy's default_rng(seed) uniform numbers (the robot side draws without JAX)."""
+    return goals_from_unit(np.random.default_rng(seed).uniform(size=(n, 2)), table).astype(np.float32)
+
+
+def session_goals(spec: str, n: int, seed: int = 0, table: Table = Table()) -> np.ndarray:
+    """[N, 2] goals of a session, all on the opponent's half: 'five' (goals A..E of
+    ttmjx.world.goals.FIVE_GOALS, n attempts each in a row), 'uniform' (n goals,
+    uniform_session_goals), or an inline 'x,y;x,y' / goal file (each goal n times in a row)."""
+    if n < 1:
+        raise ValueError(f"--n must be >= 1, got {n}")
+    if spec == "five":
+        g = five_goals(n)[0]
+    elif spec == "uniform":
+        g = uniform_session_goals(n, seed, table)
+    else:
+        g = episode_goals(goals_from_arg(spec), n)
+    return check_goal_region(g, table)

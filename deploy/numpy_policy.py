@@ -42,10 +42,12 @@ from typing import NamedTuple
 
 import numpy as np
 
+from deploy.contract import REAL_OBS_SIZE
+
 ACTION_SIZE = 8
 KINDS = ("lstm", "framestack")
 _GATES = ("i", "f", "g", "o")          # flax OptimizedLSTMCell order of the gates
-_NORM = ("obs_mean", "obs_std", "act_mean", "act_std")
+NORM_FIELDS = ("obs_mean", "obs_std", "act_mean", "act_std")
 
 
 class PolicySpec(NamedTuple):
@@ -74,7 +76,7 @@ def tensor_shapes(spec: PolicySpec, members: int) -> dict[str, tuple]:
     """Every tensor of an export of `members` members: name -> shape (leading [members])."""
     spec.check()
     n, h, o = members, spec.hidden, spec.obs_size
-    shapes = {f"norm/{k}": (n, o if k.startswith("obs") else ACTION_SIZE) for k in _NORM}
+    shapes = {f"norm/{k}": (n, o if k.startswith("obs") else ACTION_SIZE) for k in NORM_FIELDS}
     p = "net/params"
     if spec.kind == "lstm":
         for layer in range(spec.layers):
@@ -341,7 +343,7 @@ def bench_here(kind: str = "lstm", hidden: int = 1024, layers: int = 2, members:
     """Time single steps in THIS process (thread settings are whatever numpy started with):
     `p50_ms`... the whole step; `prepared_p50_ms`... the step after `prepare` (the critical
     path when prepare runs between ticks), `prepare_p50_ms`... prepare itself."""
-    spec = PolicySpec(kind, hidden, layers, 13, frame_stack)
+    spec = PolicySpec(kind, hidden, layers, REAL_OBS_SIZE, frame_stack)
     policy = ExportedPolicy(spec, random_tensors(spec, members, seed))
     full, _ = _time_steps(policy, steps, warmup, seed)
     out = {"kind": kind, "hidden": hidden, "layers": layers, "members": members, "steps": steps,

@@ -22,13 +22,14 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from deploy.contract import Contract, contract_to_dict
+from deploy.contract import REAL_OBS_SIZE, Contract, contract_to_dict
 from deploy.episode_log import Episode, EpisodeLog, save_episode
 from deploy.goals import check_goals
 from deploy.hardware import BallTracker, Clock, Robot
 from deploy.interp import Interpolated, SampleBuffer
 from deploy.modes import Mode, StateMachine
 from deploy.safety import FAULTS, LATCHING, fault_names, limits_from_contract, safe_target
+from ttmjx.world import observation
 
 
 class NumpyPolicy(Protocol):
@@ -38,7 +39,8 @@ class NumpyPolicy(Protocol):
         """The state at the start of an episode (e.g. zero LSTM carry; None if stateless)."""
 
     def step(self, state: Any, frame: np.ndarray, frames: np.ndarray) -> tuple[Any, np.ndarray]:
-        """frame [13] (= frames[-1]), frames [k, 13] oldest first -> (state, action [8])."""
+        """frame [O] (= frames[-1]), frames [k, O] oldest first (O = 13, ttmjx.world.observation)
+        -> (state, action [8])."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,15 +79,15 @@ class NoBallError(TimeoutError):
 
 
 def frame_of(joints: np.ndarray, ball: np.ndarray, goal: np.ndarray) -> np.ndarray:
-    """[13] observation frame: joints (8), ball position (3), goal (2) (docs/DESIGN.md)."""
-    return np.concatenate([joints, ball, goal]).astype(np.float32)
+    """joints [8], ball position [3], goal [2] -> [13] float32 frame (ttmjx.world.observation)."""
+    return observation.make_frame(joints, ball, goal).astype(np.float32)
 
 
 class FrameStack:
     """The last k frames [k, size], oldest first; the first push fills every row (the padding
-    of ttmjx.world.record.frame_stack)."""
+    of ttmjx.world.observation.frame_stack), one push per control tick."""
 
-    def __init__(self, k: int, size: int = 13):
+    def __init__(self, k: int, size: int = REAL_OBS_SIZE):
         self.frames = np.zeros((k, size), np.float32)
         self._empty = True
 
@@ -342,27 +344,49 @@ class Runner:
             if not settled:
                 if self.joints.newest_time > before:
                     settle.append(self.joints.newest)
-                if len(settle) < cfg.settle_reads:
-                    continue
-                recent = np.array(settle[-cfg.settle_reads:])
-                if np.any(recent.max(0) - recent.min(0) > cfg.jump_tolerance):
+                here = self._agreeing(settle)
+                if here is None:
                     continue
                 settled = True
-                here = np.clip(recent[-1], self.limits.lower, self.limits.upper)
-                if self.last_target is None:
-                    self.last_target = here     # first command of this runner: start where it is
-                elif np.any(np.abs(here - self.last_target) > self.limits.max_step + cfg.jump_tolerance):
-                    self._count(FAULTS["joint_mismatch"])
-                    self.hold("homing: joint_mismatch (the robot is not where it was last "
-                              "commanded; restart the runner after moving it by hand)")
+                if not self._resume_from(here):
                     return False
-            cmd = safe_target(self.limits, self.home, self.last_target, self._elapsed(now), cfg.home_speed)
-            self._send(cmd.target, now)
-            if (np.array_equal(cmd.target, self.home)
-                    and np.all(np.abs(self.joints.newest - self.home) <= cfg.home_tolerance)):
-                self.sm.to(Mode.ARMED, now, "at home")
+            if self._step_home(now):
                 return True
         raise AssertionError("unreachable")
+
+    def _agreeing(self, settle: list) -> np.ndarray | None:
+        """The joints [8], clipped to the ranges, once the last settle_reads fresh samples
+        [8] agree within jump_tolerance; None before."""
+        cfg = self.config
+        if len(settle) < cfg.settle_reads:
+            return None
+        recent = np.array(settle[-cfg.settle_reads:])
+        if np.any(recent.max(0) - recent.min(0) > cfg.jump_tolerance):
+            return None
+        return np.clip(recent[-1], self.limits.lower, self.limits.upper)
+
+    def _resume_from(self, here: np.ndarray) -> bool:
+        """Command from the settled joints here [8]: this runner's first command starts where
+        the robot is; later, a robot far from its last command is a fault (HOLD, False)."""
+        if self.last_target is None:
+            self.last_target = here
+        elif np.any(np.abs(here - self.last_target) > self.limits.max_step + self.config.jump_tolerance):
+            self._count(FAULTS["joint_mismatch"])
+            self.hold("homing: joint_mismatch (the robot is not where it was last "
+                      "commanded; restart the runner after moving it by hand)")
+            return False
+        return True
+
+    def _step_home(self, now: float) -> bool:
+        """Send one slow, speed-limited command toward home; at home: ARMED (True)."""
+        cfg = self.config
+        cmd = safe_target(self.limits, self.home, self.last_target, self._elapsed(now), cfg.home_speed)
+        self._send(cmd.target, now)
+        if (np.array_equal(cmd.target, self.home)
+                and np.all(np.abs(self.joints.newest - self.home) <= cfg.home_tolerance)):
+            self.sm.to(Mode.ARMED, now, "at home")
+            return True
+        return False
 
     def _wait_for_ball(self) -> bool:
         """ARMED until a fresh ball moves toward the robot (True); HOLD on a fault (False)."""
@@ -387,8 +411,8 @@ class Runner:
     def _run(self, goal: np.ndarray) -> Episode:
         c = self.contract
         T, dt = c.horizon, c.dt
-        log = self._log = EpisodeLog(T, goal)
-        stack = FrameStack(c.frame_stack)
+        log = self._log = EpisodeLog(T, goal, c.obs_size)
+        stack = FrameStack(c.frame_stack, c.obs_size)
         t0 = self.clock.now()
         self.sm.to(Mode.RUNNING, t0, "ball in play")
         history_start = len(self.sm.history) - 1

@@ -16,11 +16,14 @@ MuJoCo C physics, so the robot runner plays whole episodes exactly as against ha
   after `finish_throw` the ball is parked out of sight (the tracker reports nothing). The room
   keeps a ball in view (a real lab is enclosed): it bounces off the floor and stops at barriers
   (|x| = room_x, |y| = room_y), so a missed ball does not vanish from the tracker mid-episode.
-* Events (`ThrowEvents`), from the MuJoCo contacts of the ball, with the rules of ttmjx.world.env:
-  hit = first ball-paddle contact; bounce_own = a table contact on the robot's half before the
-  hit; net = any net contact; landing = the first table contact after the hit, or where a hit
-  ball falls through table height outside the table; on_opponent = that table contact has x > 0;
-  the throw is over when it landed or the ball fell below the table top.
+* Events (`ThrowEvents`): the world's one definition, ttmjx.world.env.update_events, applied to
+  the ball's motion one physics step at a time (`fold_physics_steps`): each step's ball state
+  before and after it and the blade centre, so the times of the hit and the landing are
+  resolved to the physics step and the room's corrections of the ball (below) are never taken
+  for contacts. hit = first paddle contact; bounce_own = a table contact on the robot's half
+  before the hit; net = any net contact; landing = the first table contact after the hit, or
+  where a hit ball falls through table height outside the table; on_opponent = that table
+  contact has x > 0; the throw is over when it landed or the ball fell below the table top.
 
 `play(runner, station, goals, out_dir)` runs episodes like Runner.run_episodes, but completes each
 logged episode with the station's events (hit, hit_step, landing, on_opponent, ..., the true
@@ -32,11 +35,13 @@ from __future__ import annotations
 import collections
 import contextlib
 import dataclasses
-import json
+import functools
 import math
 import os
 import time
 
+import jax
+import jax.numpy as jnp
 import mujoco
 import numpy as np
 
@@ -45,11 +50,41 @@ from deploy.episode_log import Episode
 from deploy.goals import check_goals
 from deploy.runner import Runner, RunnerConfig
 from deploy.safety import count_violations
-from ttmjx.world import record, scene
+from ttmjx.world import env, files, record, scene
 from ttmjx.world.config import World
+from ttmjx.world.goals import goal_metrics
 
 # Ball parked out of sight between throws (no contacts, the tracker reports nothing).
 PARK = np.array([0.0, 0.0, -5.0])
+# Physics steps folded into the events per compiled call (shorter runs are padded).
+FOLD_CHUNK = 64
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _fold_chunk(cfg: World, ev: env.Events, steps, prev, ball, paddle, valid) -> env.Events:
+    """env.update_events over FOLD_CHUNK physics steps one at a time; valid [C] False: padding."""
+    def one(ev, xs):
+        step, p, b, q, ok = xs
+        new = env.update_events(cfg, ev, step, p, b[None], q[None])
+        return jax.tree.map(lambda n, o: jnp.where(ok, n, o), new, ev), None
+
+    return jax.lax.scan(one, ev, (steps, prev, ball, paddle, valid))[0]
+
+
+def fold_physics_steps(cfg: World, ev: env.Events, steps, prev, ball, paddle) -> env.Events:
+    """One throw's events after S more physics steps, each folded in by ttmjx.world.env.update_events
+    as its own step (so `hit_step` and `done_step` are physics-step indices).
+
+    steps [S] int: the index of each step; prev [S, 6]: the ball's position and velocity just
+    before the step; ball [S, 6]: just after it; paddle [S, 3]: the blade centre at the step.
+    """
+    arrays = [np.asarray(steps, np.int32)] + [np.asarray(x, np.float32) for x in (prev, ball, paddle)]
+    for i in range(0, len(arrays[0]), FOLD_CHUNK):
+        chunk = [x[i:i + FOLD_CHUNK] for x in arrays]
+        n = len(chunk[0])
+        padded = [np.concatenate([x, np.repeat(x[:1], FOLD_CHUNK - n, 0)]) for x in chunk]
+        ev = _fold_chunk(cfg, ev, *padded, np.arange(FOLD_CHUNK) < n)
+    return ev
 
 
 class SimClock:
@@ -116,6 +151,17 @@ class ThrowEvents:
     fell: bool = False
     done: bool = False
     t_done: float = math.nan
+
+    def take(self, ev: env.Events, t0: float, dt: float) -> None:
+        """Copy in the world's events of this throw (env.Events whose step indices count physics
+        steps of dt from time t0)."""
+        at = lambda step: t0 + int(step) * dt if int(step) >= 0 else math.nan  # noqa: E731
+        self.hit, self.t_hit = bool(ev.hit), at(ev.hit_step)
+        self.bounce_own, self.net, self.on_opponent = bool(ev.bounce_own), bool(ev.net), bool(ev.on_opponent)
+        self.landed, self.landing = bool(ev.landed), np.asarray(ev.landing, np.float64)
+        self.done, self.t_done = bool(ev.done), at(ev.done_step)
+        self.fell = self.done and not self.landed
+        self.t_land = self.t_done if self.landed else math.nan
 
     def to_dict(self) -> dict:
         out = {}
@@ -196,9 +242,6 @@ class SimStation:
         self.m = scene.model(cfg, fluid=True)
         self.d = mujoco.MjData(self.m)
         self.ids = scene.ids(self.m)
-        self.table_geom = int(self.m.geom("table").id)
-        self.net_geom = int(self.m.geom("net").id)
-        self.ball_geom = int(self.m.geom("ball").id)
         self.dt = float(self.m.opt.timestep)
         self.joint_every = self._steps_per(joint_hz, "joint_hz")
         self.ball_every = self._steps_per(tracker_hz, "tracker_hz")
@@ -209,7 +252,25 @@ class SimStation:
         self.seed, self.throws_per_batch = seed, throws_per_batch
         self._throws, self._throw_i, self._batch = None, 0, 0
 
-        r = cfg.robot
+        self.events: ThrowEvents | None = None       # the throw in flight (or the last one)
+        self._world_events = env.no_events()           # its events as the world keeps them
+        self._track: list = []                         # its steps not yet folded into them
+        q0 = self._place_robot(q0)
+        self.t_origin = float(self.clock.now())
+        self.n = 0                                        # physics steps taken
+        self.joint_samples = collections.deque([(self.t_origin, q0.copy())], maxlen=256)
+        self.ball_samples = collections.deque(maxlen=512)
+        self.in_flight = False
+        self.pending: tuple | None = None                  # (t_launch, (pos, vel, spin, aim))
+        self.throw_log: list[ThrowEvents] = []
+        self.physics_steps = 0
+        self.trace: list | None = None     # set to [] to record (ball [6], blade centre [3]) per step
+        self.robot, self.tracker = SimRobot(self), SimTracker(self)
+
+    def _place_robot(self, q0) -> np.ndarray:
+        """Put the robot at q0 [8] (default: home with the world's reset noise), holding it
+        there, and the ball out of sight; returns q0."""
+        r = self.cfg.robot
         if q0 is None:
             noise = self.rng.uniform(-1.0, 1.0, 8) * np.asarray(r.home_noise)
             q0 = np.clip(np.asarray(r.home) + noise, r.lower, r.upper)
@@ -219,18 +280,7 @@ class SimStation:
         self._ramp = (q0.copy(), q0.copy(), -math.inf)   # (from, to, start time)
         self._park()
         mujoco.mj_forward(self.m, self.d)
-
-        self.t_origin = float(self.clock.now())
-        self.n = 0                                        # physics steps taken
-        self.joint_samples = collections.deque([(self.t_origin, q0.copy())], maxlen=256)
-        self.ball_samples = collections.deque(maxlen=512)
-        self.in_flight = False
-        self.pending: tuple | None = None                  # (t_launch, (pos, vel, spin, aim))
-        self.events: ThrowEvents | None = None
-        self.throw_log: list[ThrowEvents] = []
-        self.physics_steps = 0
-        self.trace: list | None = None     # set to [] to record (ball [6], blade centre [3]) per step
-        self.robot, self.tracker = SimRobot(self), SimTracker(self)
+        return q0
 
     def _steps_per(self, hz: float, name: str) -> int:
         k = 1.0 / (hz * self.cfg.physics_dt) if hz > 0 else 0.5
@@ -262,14 +312,15 @@ class SimStation:
 
     # ---------------------------------------------------------------------- throws
     def prefetch(self) -> None:
-        """Sample (and so compile) the throws now rather than at the first throw_in."""
+        """Sample (and so compile) the throws and the event rules now rather than at the first
+        throw_in."""
         with self._excluded():
             self._ensure_throws()
+            z = np.zeros((1, 6))
+            fold_physics_steps(self.cfg, env.no_events(), [0], z, z, z[:, :3])
 
     def _ensure_throws(self) -> None:
         if self._throws is None or self._throw_i >= self.throws_per_batch:
-            import jax
-
             from ttmjx.world.thrower import sample_throws
             key = jax.random.fold_in(jax.random.key(self.seed), self._batch)
             th = sample_throws(key, self.cfg, self.throws_per_batch)
@@ -298,6 +349,7 @@ class SimStation:
         self.pending = (now + float(delay_s), throw)
 
     def _launch(self, t: float) -> None:
+        self._fold_track()
         _, (pos, vel, spin, aim) = self.pending
         self.pending = None
         bq, bv = self.ids.ball_qpos, self.ids.ball_qvel
@@ -306,9 +358,11 @@ class SimStation:
         self.d.qvel[bv:bv + 6] = np.concatenate([vel, spin])
         self.in_flight = True
         self.events = ThrowEvents(t, pos.copy(), vel.copy(), spin.copy(), aim.copy())
+        self._world_events = env.no_events()
         self.throw_log.append(self.events)
 
     def _park(self) -> None:
+        self._fold_track()
         bq, bv = self.ids.ball_qpos, self.ids.ball_qvel
         self.d.qpos[bq:bq + 7] = np.concatenate([PARK, [1.0, 0.0, 0.0, 0.0]])
         self.d.qvel[bv:bv + 6] = 0.0
@@ -339,6 +393,7 @@ class SimStation:
             with self._excluded():
                 while self.n < target:
                     self._step()
+                self._fold_track()
         return now
 
     def _excluded(self):
@@ -347,71 +402,49 @@ class SimStation:
         return excluded() if excluded is not None else contextlib.nullcontext()
 
     def _step(self) -> None:
-        d, ids = self.d, self.ids
         t = self.time
         if self.pending is not None and t >= self.pending[0] - 1e-12:
             self._launch(t)
-        d.ctrl[:] = self._ctrl_at(t + self.dt)       # the ramped target at the end of the step
-        bq = ids.ball_qpos
-        prev = d.qpos[bq:bq + 3].copy()
-        mujoco.mj_step(self.m, d)
+        self.d.ctrl[:] = self._ctrl_at(t + self.dt)       # the ramped target at the end of the step
+        prev = self.ball()
+        mujoco.mj_step(self.m, self.d)
         self.n += 1
         self.physics_steps += 1
-        t = self.time
         if self.in_flight:
-            self._update_events(prev, t)
-            if self.trace is not None:
-                self.trace.append((self.ball(), d.sensordata[:3].copy()))
+            self._track_step(prev)
             self._room()
         else:
             self._park()
+        self._sample(self.time)
+
+    def _sample(self, t: float) -> None:
+        """The joint feedback and the ball tracker, each at its rate."""
         if self.n % self.joint_every == 0:
-            self.joint_samples.append((t, d.qpos[ids.robot_qpos].copy()))
+            self.joint_samples.append((t, self.joints()))
         if self.in_flight and self.n % self.ball_every == 0:
-            x = d.qpos[bq:bq + 3].copy()
+            x = self.ball()[:3]
             if self.noise_m > 0:
                 x = x + self.rng.normal(0.0, self.noise_m, 3)
             self.ball_samples.append((t, x))
 
-    def _contacts(self) -> set:
-        """Geoms the ball touched in the last step (MuJoCo's contacts of that step)."""
-        d, out = self.d, set()
-        for i in range(d.ncon):
-            g1, g2 = int(d.contact.geom1[i]), int(d.contact.geom2[i])
-            if g1 == self.ball_geom:
-                out.add(g2)
-            elif g2 == self.ball_geom:
-                out.add(g1)
-        return out
+    def _track_step(self, prev: np.ndarray) -> None:
+        """Keep the step just taken (ball [6] before it, ball [6] and blade centre [3] after) for
+        the events (and the trace)."""
+        ball, paddle = self.ball(), self.d.sensordata[:3].copy()
+        self._track.append((self.n, prev, ball, paddle))
+        if self.trace is not None:
+            self.trace.append((ball, paddle))
 
-    def _update_events(self, prev: np.ndarray, t: float) -> None:
-        ev = self.events
-        if ev is None or ev.done:
+    def _fold_track(self) -> None:
+        """Fold the kept steps into the throw's events (the world's rules, ttmjx.world.env)."""
+        if not self._track:
             return
-        tab = self.cfg.table
-        pos = self.d.qpos[self.ids.ball_qpos:self.ids.ball_qpos + 3]
-        touched = self._contacts() if self.d.ncon else set()
-        if self.ids.paddle_geom in touched and not ev.hit:
-            ev.hit, ev.t_hit = True, t
-        if self.net_geom in touched:
-            ev.net = True
-        on_table = self.table_geom in touched
-        if on_table and not ev.hit and pos[0] < 0:
-            ev.bounce_own = True
-        if on_table and ev.hit and not ev.landed:
-            ev.landed, ev.landing, ev.t_land = True, pos[:2].copy(), t
-            ev.on_opponent = bool(pos[0] > 0)
-        height = tab.top_z + self.cfg.ball.radius
-        off_table = abs(pos[0]) > tab.half_length or abs(pos[1]) > tab.half_width
-        if (ev.hit and not ev.landed and not on_table and off_table
-                and prev[2] >= height > pos[2]):
-            frac = float(np.clip((prev[2] - height) / max(prev[2] - pos[2], 1e-9), 0.0, 1.0))
-            ev.landed, ev.t_land = True, t
-            ev.landing = prev[:2] + frac * (pos[:2] - prev[:2])
-        if pos[2] < tab.top_z - 0.05:
-            ev.fell = True
-        if ev.landed or ev.fell:
-            ev.done, ev.t_done = True, t
+        steps, prev, ball, paddle = (np.asarray(x) for x in zip(*self._track))
+        self._track = []
+        if self.events is None or self.events.done:
+            return
+        self._world_events = fold_physics_steps(self.cfg, self._world_events, steps, prev, ball, paddle)
+        self.events.take(self._world_events, self.t_origin, self.dt)
 
     def _room(self) -> None:
         """Floor and barriers: the ball stays in the tracked volume."""
@@ -472,63 +505,61 @@ def play(runner: Runner, station: SimStation, goals, out_dir: str | None = None,
         on_no_ball=no_ball)
 
 
-def _nan_to_none(x):
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, dict):
-        return {k: _nan_to_none(v) for k, v in x.items()}
-    if isinstance(x, list):
-        return [_nan_to_none(v) for v in x]
-    return x
+def goal_summary(episodes: list[Episode]) -> dict:
+    """ttmjx.world.goals.goal_metrics over the episodes' landings, plus the fraction that landed
+    on the opponent's half (zeros, mean_dist NaN, without episodes)."""
+    if not episodes:
+        return {"within_30cm": 0.0, "within_20cm": 0.0, "mean_dist": math.nan, "hit_rate": 0.0,
+                "goals": 0, "on_opponent": 0.0}
+    tr = record.concat([e.traj for e in episodes])
+    return {**goal_metrics(tr.landing, tr.goal, tr.hit), "on_opponent": float(np.mean(tr.on_opponent))}
 
 
-def summarize(runner: Runner, station: SimStation, episodes: list[Episode], goals: np.ndarray,
-              wall_s: float) -> dict:
-    """The JSON summary of a session: goal metrics (eval.metrics.goal_metrics over the episodes'
-    landings), safety and timing.
-
-    `violations`: deploy.safety.count_violations of every command against the contract's
-    filtered limits (speed_margin x the speed limits) on the times the commands reached the
-    station; all zero on a fake-time clock. With the runner's computation time charged
-    (SimClock(charge_compute=True), the CLI default) the runner's decision-to-send time (~0.1 ms
-    of Python) can make two commands arrive slightly closer than the runner reckoned, which the
-    strict rate check counts (< 1% over the margin). `violations_true_limits` and
-    `max_speed_fraction` (the fastest commanded change as a fraction of the true speed limits)
-    are what the robot experienced: must be zero and <= 1."""
-    from eval.metrics import goal_metrics
-    if episodes:
-        landing = np.concatenate([e.traj.landing for e in episodes])
-        goal = np.concatenate([e.traj.goal for e in episodes])
-        hit = np.concatenate([e.traj.hit for e in episodes])
-        metrics = goal_metrics(landing, goal, hit)
-        metrics["on_opponent"] = float(np.mean(np.concatenate([e.traj.on_opponent for e in episodes])))
-    else:
-        metrics = {"within_30cm": 0.0, "within_20cm": 0.0, "mean_dist": float("nan"),
-                   "hit_rate": 0.0, "goals": 0, "on_opponent": 0.0}
+def command_safety(runner: Runner, station: SimStation) -> dict:
+    """Every command sent, checked (deploy.safety.count_violations) on the times it reached the
+    station: against the contract's filtered limits (speed_margin x the speed limits), and
+    against the robot's true speed limits (`violations_true_limits`, and `max_speed_fraction`:
+    the fastest commanded change as a fraction of them), which is what the robot experienced."""
     t, q = station.robot.command_log()
     start = station.robot.true_at_send[0] if len(t) else None
-    v = count_violations(runner.limits, t, q, start=start)
-    # Against the robot's true speed limits (the filter uses speed_margin of them): what the
-    # robot experienced, on the times the commands reached it.
     true_speed = np.asarray(runner.contract.max_speed, np.float64)
-    v_true = count_violations(runner.limits._replace(speed=true_speed), t, q, start=start)
     speed_frac = 0.0
     if len(t) > 1:
         dt = np.minimum(np.diff(t), runner.limits.dt)[:, None]
         speed_frac = float(np.max(np.abs(np.diff(q, axis=0)) / np.maximum(true_speed * dt, 1e-12)))
+    return {"violations": count_violations(runner.limits, t, q, start=start)._asdict(),
+            "violations_true_limits": count_violations(runner.limits._replace(speed=true_speed), t, q,
+                                                       start=start)._asdict(),
+            "max_speed_fraction": speed_frac, "commands": int(len(t))}
+
+
+def latency_ms(episodes: list[Episode]) -> dict | None:
+    """p50, p99 and max of the command latencies (ms) over the episodes (None without any)."""
     lat = np.concatenate([e.extras["latency"] for e in episodes]) if episodes else np.zeros(0)
     lat = lat[np.isfinite(lat)] * 1e3
+    if not lat.size:
+        return None
+    return {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)), "max": float(lat.max())}
+
+
+def summarize(runner: Runner, station: SimStation, episodes: list[Episode], goals: np.ndarray,
+              wall_s: float) -> dict:
+    """The JSON summary of a session: goal metrics (goal_summary), command safety
+    (command_safety), faults and timing.
+
+    `violations` are all zero on a fake-time clock. With the runner's computation time charged
+    (SimClock(charge_compute=True), the CLI default) the runner's decision-to-send time (~0.1 ms
+    of Python) can make two commands arrive slightly closer than the runner reckoned, which the
+    strict rate check counts (< 1% over the margin); `violations_true_limits` must be zero and
+    `max_speed_fraction` <= 1."""
     sim_s = station.time - station.t_origin
-    return _nan_to_none({
-        "episodes": len(episodes), "goals": int(len(goals)), "metrics": metrics,
-        "violations": v._asdict(), "violations_true_limits": v_true._asdict(),
-        "max_speed_fraction": speed_frac, "commands": int(len(t)),
+    return files.json_safe({
+        "episodes": len(episodes), "goals": int(len(goals)), "metrics": goal_summary(episodes),
+        **command_safety(runner, station),
         "mode": runner.mode.value, "overruns": runner.overruns, "skipped": runner.skipped,
         "faults": dict(runner.fault_counts), "ends": [e.meta["end"] for e in episodes],
-        "landings": [[None if not np.isfinite(x) else float(x) for x in e.traj.landing[0]]
-                     for e in episodes],
-        "latency_ms": ({"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
-                        "max": float(lat.max())} if lat.size else None),
+        "landings": [[float(x) for x in e.traj.landing[0]] for e in episodes],
+        "latency_ms": latency_ms(episodes),
         "policy_hash": runner.policy_hash, "control_hz": runner.contract.control_hz,
         "sim_s": float(sim_s), "wall_s": float(wall_s),
         "realtime_factor": float(sim_s / wall_s) if wall_s > 0 else None,
@@ -560,6 +591,5 @@ def run_sim(policy_dir: str, goals, out_dir: str | None = None, seed: int = 0,
     out.update({"policy": policy_dir, "self_test_error": policy.self_test_error,
                 "distribution": cfg.throws.name, "out": out_dir, "seed": seed})
     if out_dir is not None:
-        with open(os.path.join(out_dir, "session.json"), "w") as f:
-            json.dump(out, f, indent=1)
+        files.write_json(os.path.join(out_dir, "session.json"), out, indent=1)
     return out

@@ -15,7 +15,7 @@ from deploy import (FAULTS, Contract, FrameStack, Mode, NoBallError, Runner, Run
                     goals_from_arg, check_goal_region, interpolate, limits_from_contract,
                     load_episode, parse_goals, safe_target)
 from deploy.fakes import FakeClock, FakeRobot, FakeTracker, FollowBallPolicy
-from ttmjx.world import record
+from ttmjx.world import observation, record
 from ttmjx.world.config import World
 
 CONTRACT = Contract()                      # 20 Hz, k = 8, 1.6 s -> 32 ticks
@@ -86,9 +86,9 @@ def test_sample_buffer_keeps_the_newest_capacity_samples():
     np.testing.assert_allclose(buf.at(9.5).value, [9.5, -9.5])
 
 
-def test_frame_stack_matches_the_record_frame_stack():
+def test_frame_stack_matches_the_observation_frame_stack():
     obs = np.random.default_rng(0).normal(size=(1, 11, 13)).astype(np.float32)
-    want = record.frame_stack(obs, 8)[0]                  # [T, k, 13]
+    want = observation.frame_stack(obs, 8)[0]             # [T, k, 13]
     stack = FrameStack(8)
     got = np.stack([stack.push(f) for f in obs[0]])
     np.testing.assert_array_equal(got, want)
@@ -235,8 +235,8 @@ def test_clean_episode_is_on_the_grid_and_observes_the_interpolated_world():
     assert np.all(err <= np.asarray(CONTRACT.max_speed) * 0.0061 + 1e-5), err.max(0)
     # Observed ball: interpolated 125 Hz samples vs the true path at each deadline (< 1 cm).
     vis, xyz = tracker.positions(x["t_grid"])
-    assert vis.all() and np.abs(ep.traj.obs[0, :, 8:11] - xyz).max() < 0.01
-    np.testing.assert_allclose(ep.traj.obs[0, :, 11:], np.tile([0.7, 0.3], (T, 1)), atol=1e-6)
+    assert vis.all() and np.abs(observation.ball_pos(ep.traj.obs[0]) - xyz).max() < 0.01
+    np.testing.assert_allclose(observation.goal(ep.traj.obs[0]), np.tile([0.7, 0.3], (T, 1)), atol=1e-6)
     # The record's actions are exactly what the robot received during the episode.
     sent_t, sent_q = robot.command_log()
     in_ep = (sent_t >= t0) & (sent_t <= x["t_grid"][-1])
@@ -341,7 +341,7 @@ def test_episodes_are_saved_as_trajectory_records(tmp_path):
         (lo, hi), (t_lo, t_hi) = x["ball_used_xyz"].transpose(1, 0, 2), x["ball_used_t"].T
         ext = RunnerConfig().max_extrapolate_s
         s = (np.clip(x["t_grid"], t_lo, t_hi + ext) - t_lo) / (t_hi - t_lo)
-        np.testing.assert_allclose(back.traj.obs[0, :, 8:11], lo + s[:, None] * (hi - lo), atol=1e-5)
+        np.testing.assert_allclose(observation.ball_pos(back.traj.obs[0]), lo + s[:, None] * (hi - lo), atol=1e-5)
     with pytest.raises(FileExistsError):
         from deploy import save_episode
         save_episode(str(tmp_path), "episode_0000", eps[0])

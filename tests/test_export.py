@@ -14,11 +14,12 @@ import numpy as np
 import pytest
 
 from deploy import ROBOT_MODEL_ID, Contract, ExportError, load_export, read_contract
-from deploy.export import (CONTRACT_FILE, GOLDEN_FILE, WEIGHTS_FILE, export, params_from_checkpoint,
+from deploy.export import (CONTRACT_FILE, GOLDEN_FILE, WEIGHTS_FILE, export, export_checkpoint,
                            sha256_bytes)
 from deploy.numpy_policy import ExportedPolicy, PolicySpec, benchmark, tensor_shapes
 from models import (Normalizer, PolicyConfig, PolicyParams, init_ensemble, init_params, make_policy,
                     member)
+from ttmjx.world import env, observation
 from ttmjx.world.config import World
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -47,15 +48,10 @@ def random_params(pcfg, seed=0, members=None) -> PolicyParams:
 def observations(steps, k, seed=0):
     """[L, 13] frames of plausible scale and their [L, k, 13] stacks (the runner's padding)."""
     rng = np.random.default_rng(seed)
-    frames = (rng.standard_normal((steps, 13)) * np.r_[[0.2] * 2, [1.0] * 6, [1.0, 0.4, 0.2], [0.5] * 2]
-              + np.r_[[0.0] * 8, [0.0, 0.0, 0.9], [0.7, 0.0]]).astype(np.float32)
-    idx = np.clip(np.arange(steps)[:, None] - (k - 1) + np.arange(k)[None, :], 0, steps - 1)
-    return frames, frames[idx]
-
-
-class _Obs:
-    def __init__(self, frame, frames):
-        self.frame, self.frames, self.ball_vel = frame, frames, jnp.zeros(3)
+    normal = lambda scale, mean=0.0: rng.standard_normal((steps, len(scale))) * scale + mean  # noqa: E731
+    frames = observation.make_frame(normal([0.2] * 2 + [1.0] * 6), normal([1.0, 0.4, 0.2], [0.0, 0.0, 0.9]),
+                                    normal([0.5] * 2, [0.7, 0.0])).astype(np.float32)
+    return frames, observation.frame_stack(frames[None], k)[0]
 
 
 def jax_actions(pcfg, params, frames, stacks):
@@ -64,7 +60,8 @@ def jax_actions(pcfg, params, frames, stacks):
 
     @jax.jit
     def run(p, f, s):
-        body = lambda c, xs: pol.apply(p, c, _Obs(*xs), None)  # noqa: E731
+        obs = lambda frame, stack: env.Obs(frame, jnp.zeros(3), stack, jnp.int32(0))  # noqa: E731
+        body = lambda c, xs: pol.apply(p, c, obs(*xs), None)  # noqa: E731
         return jax.lax.scan(body, pol.init(p, None), (f, s))[1]
     return np.asarray(run(params, jnp.asarray(frames), jnp.asarray(stacks)))
 
@@ -302,31 +299,29 @@ def test_load_needs_numpy_only(ensemble_export):
     assert out.stdout.strip() == "3"
 
 
-def test_export_from_a_checkpoint_through_the_cli(tmp_path):
-    """ttmjx export RUN: only the policy parameters are restored from a trainer-like checkpoint
-    (train state + a trajectory cache), the PolicyConfig and World from its saved config."""
-    import dataclasses
-
-    from training import checkpoint
-    from training.config import TrainConfig
-    from training.update import init_train_state
-    from ttmjx.cli import main
-    from ttmjx.world.config import to_dict
-    params = random_params(MLP, seed=8, members=2)
-    state = init_train_state(jax.random.key(0), MLP, TrainConfig(members=2), member(params, 0).norm)._replace(params=params, ema=params)
-    world = World(frame_stack=4)
-    checkpoint.save(str(tmp_path / "run" / "checkpoints"), 3,
-                    {"state": state, "cache": {"obs": jnp.zeros((64, 20, 13))}, "key": jnp.zeros(2, jnp.uint32)},
-                    {"world": to_dict(world), "policy": dataclasses.asdict(MLP)})
-    p2, pcfg, w2, source = params_from_checkpoint(str(tmp_path / "run"))
-    assert pcfg == MLP and w2 == world and source.endswith("@3/state/ema")
-    main(["export", str(tmp_path / "run"), "--out", str(tmp_path / "exp"), "--member", "1",
-          "--control-hz", "20"])
-    pol, contract = load_export(str(tmp_path / "exp"))
-    assert pol.members == 1 and contract.control_hz == 20.0 and contract.frame_stack == 4
-    frames, stacks = observations(10, 4, seed=1)
-    np.testing.assert_allclose(pol.run(frames, stacks), jax_actions(MLP, member(params, 1), frames, stacks),
+def test_export_checkpoint_reads_the_configuration_saved_with_the_checkpoint(tmp_path):
+    """export_checkpoint opens a run through the one loader (training.checkpoint.load_checkpoint):
+    the PolicyConfig, World and acting parameters saved with it; the member asked for."""
+    from training.checkpoint import load_checkpoint
+    run = os.path.join(ROOT, "tests", "data", "tiny_run_v0")
+    loaded = load_checkpoint(run)
+    out = export_checkpoint(run, str(tmp_path / "exp"), member=1, control_hz=20)
+    pol, contract = load_export(out)
+    doc = read_contract(out)
+    pcfg = loaded.cfg.policy
+    assert pol.members == 1 and contract.control_hz == 20.0 and contract.frame_stack == pcfg.frame_stack
+    assert doc["policy"]["kind"] == pcfg.kind and doc["policy"]["hidden"] == pcfg.hidden
+    assert doc["source"]["checkpoint"] == f"{os.path.abspath(loaded.directory)}@{loaded.step}"
+    assert doc["source"]["members"] == [1] and doc["world"]["control_hz"] == loaded.cfg.world.control_hz
+    frames, stacks = observations(10, pcfg.frame_stack, seed=1)
+    np.testing.assert_allclose(pol.run(frames, stacks), jax_actions(pcfg, member(loaded.params, 1), frames, stacks),
                                rtol=0, atol=1e-5)
+    with pytest.raises(ExportError, match="ensemble of 2 members"):
+        export_checkpoint(run, str(tmp_path / "two"))
+    with pytest.raises(FileNotFoundError, match="no checkpoint step 5"):
+        export_checkpoint(run, str(tmp_path / "five"), step=5)
+    with pytest.raises(FileExistsError, match="refusing to overwrite"):
+        export_checkpoint(run, out, member=0)
 
 
 def test_latency_benchmark_runs_on_one_thread():
