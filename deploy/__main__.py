@@ -1,4 +1,4 @@
-"""python -m deploy (see deploy/cli.py)."""
+"""python -m deploy: the robot side's command line (deploy/cli.py)."""
 import sys
 
 from deploy.cli import main

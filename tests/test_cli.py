@@ -1,14 +1,24 @@
-"""The `ttmjx` commands as a user runs them: JSON last lines, datasets, plots, video, errors."""
+"""The `ttmjx` commands as a user runs them: JSON last lines, datasets, plots, video, errors,
+and every subcommand's --help listing every configuration field."""
+import ast
 import ctypes.util
+import dataclasses
 import json
 import os
+import re
 import subprocess
 import sys
+import typing
 
 import numpy as np
 import pytest
+import tyro
 
+from training.runconfig import RunConfig, preset
+from ttmjx.cli import COMMANDS, main
 from ttmjx.world import record
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def ttmjx(*args, timeout=600):
@@ -54,9 +64,10 @@ def test_demos_dataset_plot_and_no_overwrite(tmp_path):
 
 def test_bad_input_is_refused_before_any_work(tmp_path):
     bad = ttmjx("throw", "--distribution", "wide")
-    assert bad.returncode == 2 and "invalid choice: 'wide'" in bad.stderr
+    assert bad.returncode == 2 and bad.stderr.startswith("ttmjx throw: error: invalid choice 'wide'")
+    assert "Expected one of ('narrow', 'any', 'varied')" in bad.stderr and bad.stderr.count("\n") == 1
     bad = ttmjx("throw", "--n", "0")
-    assert bad.returncode == 2 and "--n must be >= 1, got 0" in bad.stderr
+    assert bad.returncode == 2 and bad.stderr == "ttmjx throw: error: --n must be >= 1, got 0\n"
     bad = ttmjx("plot-landings", str(tmp_path / "missing"))
     assert bad.returncode == 2 and "does not exist" in bad.stderr
 
@@ -83,3 +94,93 @@ def test_render_writes_an_animated_gif(tmp_path):
     from PIL import Image
     with Image.open(path) as im:
         assert im.n_frames >= 20 and im.size == (480, 320)
+
+
+# -- the command table and --help -------------------------------------------------------------
+def help_of(capsys, monkeypatch, *argv) -> str:
+    """`ttmjx ARGV --help` in this process (exit 0), boxes and line breaks folded away."""
+    monkeypatch.setenv("COLUMNS", "100")
+    with pytest.raises(SystemExit) as exit_:
+        main([*argv, "--help"])
+    assert exit_.value.code == 0
+    return " ".join(re.sub(r"[│╭╮╰╯─]", " ", capsys.readouterr().out).split())
+
+
+def flags(cls, prefix="--"):
+    """The flag of every field of an args dataclass, nested configuration fields included
+    (a field named with tyro.conf.arg(name="") adds no prefix; positionals have no flag)."""
+    hints = typing.get_type_hints(cls, include_extras=True)
+    for f in dataclasses.fields(cls):
+        meta = getattr(hints[f.name], "__metadata__", ())
+        if tyro.conf.Positional in meta:
+            continue
+        flag = prefix + f.name.replace("_", "-")
+        nested = hints[f.name].__origin__ if meta else f.default
+        if dataclasses.is_dataclass(nested):
+            unprefixed = any(getattr(m, "name", None) == "" for m in meta)
+            yield from flags(nested if isinstance(nested, type) else type(nested), prefix if unprefixed else flag + ".")
+        else:
+            yield flag
+
+
+def test_every_subcommand_help_lists_every_field(capsys, monkeypatch):
+    assert [*COMMANDS] == ["throw", "bench", "render", "sim", "demos", "plot-landings", "train", "eval",
+                           "export", "robot run", "robot bench"]
+    assert len(list(flags(COMMANDS["train"].args))) > 100     # RunConfig's nested fields
+    for name, cmd in COMMANDS.items():
+        text = help_of(capsys, monkeypatch, *name.split())
+        assert text.startswith(f"usage: ttmjx {name} ")
+        for flag in flags(cmd.args):
+            assert re.search(re.escape(flag) + r"[ ,]", text), f"ttmjx {name} --help lacks {flag}"
+    assert "robot bench" in help_of(capsys, monkeypatch) and "run" in help_of(capsys, monkeypatch, "robot")
+
+
+@pytest.mark.parametrize("name", ["tiny", "paper-sim-new"])
+def test_train_help_shows_the_presets_defaults(name, capsys, monkeypatch):
+    text = help_of(capsys, monkeypatch, "train", "--preset", name)
+    cfg = preset(name)
+    for flag, value in (("--train.members INT", cfg.train.members), ("--world.control-hz INT", cfg.world.control_hz),
+                        ("--run-dir STR", cfg.run_dir), ("--policy.kind STR", cfg.policy.kind)):
+        # the flag, its help (up to the next flag) and its default
+        assert re.search(re.escape(flag) + r" (?:(?! --\w).)*?\(default: " + re.escape(str(value)) + r"\)", text), \
+            (flag, value)
+
+
+def test_train_overrides_on_top_of_a_preset():
+    from ttmjx.cli import parse_train
+    a = parse_train(["--preset", "paper-sim-new", "--seed", "2", "--train.members", "4", "--world.control-hz", "20",
+                     "--train.window", "16", "--demo-dir", "d", "--total-trajectories", "9", "--no-practice", "--json",
+                     "--max-iterations", "3"])
+    assert a.json and a.max_iterations == 3 and isinstance(a.config, RunConfig)
+    cfg = a.config
+    assert (cfg.preset, cfg.seed, cfg.train.members, cfg.demo_dir, cfg.total_trajectories, cfg.practice) == \
+        ("paper-sim-new", 2, 4, "d", 9, False)
+    assert cfg.run_dir == "runs/paper-sim-new-seed2" and cfg.policy.hidden == 1024
+    assert cfg.world.control_hz == 20 and cfg.world.substeps == 50     # physics_dt derived again
+    assert parse_train(["--preset", "tiny", "--seed", "2", "--run-dir", "x"]).config.run_dir == "x"
+
+
+def test_json_line_is_valid_json(capsys):
+    from ttmjx.cli import Report, report
+    report(Report(json=True), {"a": float("nan"), "b": [np.float64("inf"), 1.5], "c": {"d": -np.inf}}, "text")
+    assert json.loads(capsys.readouterr().out) == {"a": None, "b": [None, 1.5], "c": {"d": None}}
+
+
+def package(module: str) -> str:
+    """training.checkpoint -> training; ttmjx.world.config -> ttmjx.world (ttmjx holds three layers)."""
+    parts = module.split(".")
+    return ".".join(parts[:2] if parts[0] == "ttmjx" else parts[:1])
+
+
+def test_no_module_imports_a_private_name_of_another_package():
+    """The layers meet through public names only (tests/test_layers.py: no upward imports, no
+    module loaded by name)."""
+    paths = [os.path.join(d, f) for pkg in ("ttmjx", "models", "training", "eval", "deploy")
+             for d, _, files in os.walk(os.path.join(ROOT, pkg)) for f in files if f.endswith(".py")]
+    assert os.path.join(ROOT, "ttmjx", "cli.py") in paths
+    for path in paths:
+        mine = package(os.path.relpath(path, ROOT)[:-3].replace(os.sep, "."))
+        for node in ast.walk(ast.parse(open(path).read(), path)):
+            if isinstance(node, ast.ImportFrom) and node.module and package(node.module) != mine:
+                private = [a.name for a in node.names if a.name.startswith("_")]
+                assert not private, f"{path}:{node.lineno} imports {private} from {node.module}"

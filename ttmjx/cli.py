@@ -1,122 +1,450 @@
-"""`ttmjx` command line. Every subcommand that reports numbers takes --json and then prints one
-JSON object as its last line."""
+"""`ttmjx`: the command line, on top of every package (world -> tools -> models -> training ->
+eval -> deploy -> here; nothing imports this module).
+
+Every subcommand is a row of COMMANDS (at the bottom): its arguments (a frozen dataclass whose
+fields are its flags; `ttmjx CMD --help` lists each with its type, default and meaning, nested
+configuration fields included), the function that runs it and a line of help. Subcommands that
+report numbers take --json and then print one JSON object as their last line (non-finite numbers
+as null). Bad input exits 2 with one line, `ttmjx CMD: error: ...`.
+"""
 from __future__ import annotations
 
-import argparse
+import contextlib
+import dataclasses
+import io
 import json
 import os
+import re
 import sys
-import time
+from typing import Annotated, Any, Callable, Literal, NamedTuple, NoReturn
+
+import tyro
+
+from deploy.cli import STATIONS
+from training.runconfig import PRESET_NAMES, RunConfig, preset
+from ttmjx.world.config import CONTROL_RATES, THROW_DISTRIBUTIONS, World
+from ttmjx.world.files import json_safe
+
+Flag = Annotated[bool, tyro.conf.FlagCreatePairsOff]   # a bare --flag, off by default
+Backend = Literal["c", "mjx"]
 
 
-def _print(args, obj: dict, text: str | None = None):
-    if getattr(args, "json", False):
-        print(json.dumps(obj))
-    else:
-        print(text if text is not None else json.dumps(obj, indent=2))
+RunPath = Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="RUN_OR_CHECKPOINT")]
+DatasetPath = Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="DIR")]
 
 
-def _world(args):
-    from ttmjx.world.config import World
-    kw = {}
-    if getattr(args, "control_hz", None):
-        kw["control_hz"] = args.control_hz
-    cfg = World(**kw)
-    dist = getattr(args, "distribution", None)
-    if dist:
-        cfg = cfg.with_throws(dist, spin=bool(getattr(args, "spin", False)))
-    return cfg
+# --------------------------------------------------------------------------------------------
+# Arguments: one frozen dataclass per subcommand; field docstrings are the --help lines.
+# --------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Report:
+    json: Flag = False
+    """Print one JSON object as the last line (non-finite numbers as null)."""
 
 
-def cmd_throw(args):
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class WorldArgs(Report):
+    distribution: Literal[THROW_DISTRIBUTIONS] = "narrow"
+    """Throw distribution (ttmjx/world/config.py Throws)."""
+    spin: Flag = False
+    """Throws with spin (off by default, as in the paper)."""
+    control_hz: Literal[CONTROL_RATES] | None = None
+    """Policy steps per second; None: the World's (100)."""
+
+    def world(self) -> World:
+        cfg = World() if self.control_hz is None else World(control_hz=self.control_hz)
+        return cfg.with_throws(self.distribution, spin=self.spin)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ThrowArgs(WorldArgs):
+    """Sample throws and simulate their first bounce; reports launch, aim and bounce of each."""
+    n: int = 10
+    """Number of throws."""
+    seed: int = 0
+    """Seed of the throw sampler."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class BenchArgs(WorldArgs):
+    """Physics throughput of a backend against the raw mujoco.rollout baseline (docs/BENCHMARKS.md)."""
+    backend: Backend = "c"
+    """Physics backend: MuJoCo C (mujoco.rollout) or MJX."""
+    batch: int = 1024
+    """Episodes simulated together."""
+    threads: int | None = None
+    """C backend threads; None: all cores."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class RenderArgs(WorldArgs):
+    """Write a short video (GIF) of a few throws, headless (OSMesa or EGL)."""
+    n: int = 3
+    """Number of throws."""
+    seed: int = 0
+    """Seed of the throw sampler."""
+    source: Literal["scripted", "hold"] = "scripted"
+    """Who plays: the scripted striker or a robot holding its home pose."""
+    out: str = "throws.gif"
+    """GIF path."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SimArgs(WorldArgs):
+    """A short simulation run: the scripted striker plays N throws; prints what it did."""
+    backend: Backend = "c"
+    """Physics backend: MuJoCo C (mujoco.rollout) or MJX."""
+    n: int = 64
+    """Number of throws."""
+    seed: int = 0
+    """Seed of the throw sampler."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class DemosArgs(WorldArgs):
+    """Collect bootstrap demonstrations into a new dataset directory (docs/DATA.md)."""
+    source: Literal["scripted", "es"] = "scripted"
+    """Demonstrator: the scripted striker or the ES policy."""
+    n: int = 1000
+    """Number of episodes."""
+    seed: int = 0
+    """Seed of the throws (and the demonstrator's noise)."""
+    out: str
+    """New dataset directory (never overwritten)."""
+    backend: Backend = "c"
+    """Physics backend: MuJoCo C (mujoco.rollout) or MJX."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class PlotArgs(Report):
+    """Draw a dataset's landing points over the table (PNG)."""
+    dir: DatasetPath
+    """Dataset directory (ttmjx demos --out)."""
+    out: str | None = None
+    """PNG path; None: DIR/landings.png."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class TrainArgs(Report):
+    """GoalsEye training: demonstrations, GCBC, self-practice, evaluation, checkpoints, curves.
+
+    --preset P picks the defaults (default, lfp, gcsl, paper-sim, paper-sim-new, tiny, cpu, gpu);
+    `ttmjx train --preset P --help` shows P's. Every field below overrides it, e.g.
+    `ttmjx train --preset paper-sim --seed 1 --train.members 4`. A non-zero --seed without
+    --run-dir runs in the preset's run directory + '-seedN'. The same command resumes a run.
+    """
+    config: Annotated[RunConfig, tyro.conf.arg(name="")]
+    max_iterations: int | None = None
+    """Stop (with a checkpoint) after this many iterations; the same command resumes later."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class EvalArgs(Report):
+    """Goal-reaching metrics of a run's checkpoint (its moving-average policy)."""
+    run: RunPath
+    """Run directory (or its checkpoints/ directory)."""
+    distribution: Literal[THROW_DISTRIBUTIONS] | None = None
+    """Throws; None: the run's."""
+    goals: str = "200"
+    """Number of uniform goals over the opponent's half, or 'five' for goals A-E."""
+    per_goal: int = 40
+    """Attempts per goal with --goals five."""
+    backend: Backend | None = None
+    """Physics backend; None: the run's."""
+    seed: int = 1234
+    """Seed of the throws and uniform goals."""
+    member: int | None = None
+    """Evaluate one ensemble member alone; None: the whole ensemble."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ExportArgs(Report):
+    """Safetensors weights + contract + golden self-test of a checkpoint, for the robot runner."""
+    checkpoint: RunPath
+    """A run directory holding checkpoints/, or a checkpoint directory."""
+    out: str
+    """Export directory (must not hold an export)."""
+    step: int | None = None
+    """Checkpoint step; None: the newest."""
+    ensemble: Flag = False
+    """All members; their actions are averaged (not with --member)."""
+    member: int | None = None
+    """One member of an ensemble (not with --ensemble)."""
+    control_hz: Literal[CONTROL_RATES] | None = None
+    """The robot's control rate; None: the rate the policy was trained at."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class RobotRunArgs(Report):
+    """Play an exported policy toward goals on a station and log the episodes."""
+    policy: str
+    """An export directory (ttmjx export --out)."""
+    station: Literal[STATIONS]
+    """sim: MuJoCo C physics and the thrower; fake: simple kinematics."""
+    goals: str
+    """'x,y;x,y', a goal file (.json/.npy/.csv/.txt), 'five' (goals A-E) or 'uniform'."""
+    n: int = 1
+    """Attempts per goal ('uniform': the number of goals)."""
+    out: str | None = None
+    """Directory for the episode logs (ttmjx train --data reads them); None: no logs."""
+    seed: int = 0
+    """Seed of the throws (and of uniform goals)."""
+    distribution: Literal[THROW_DISTRIBUTIONS] | None = None
+    """Throws; None: the export's training world."""
+    stale_ms: float = 100.0
+    """Joint or ball data older than this (ms) -> hold."""
+    realtime: Flag = False
+    """Pace on the real clock."""
+    no_compute_time: Flag = False
+    """sim: do not charge the runner's computation time to the simulated clock."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class RobotBenchArgs(Report):
+    """Step latency of the numpy policy on one CPU core (the robot side's budget)."""
+    kind: Literal["lstm", "framestack"] = "lstm"
+    """Policy type."""
+    hidden: int = 1024
+    """Units per layer."""
+    layers: int = 2
+    """LSTM cells or MLP hidden layers."""
+    members: int = 1
+    """Ensemble members."""
+    steps: int = 2000
+    """Timed policy steps."""
+    threads: int = 1
+    """BLAS threads."""
+
+
+# --------------------------------------------------------------------------------------------
+# Commands
+# --------------------------------------------------------------------------------------------
+def report(args: Report, obj: dict, text: str) -> None:
+    """Print `text`, or with --json `obj` as one line of valid JSON (non-finite -> null)."""
+    print(json.dumps(json_safe(obj), allow_nan=False) if args.json else text)
+
+
+def table(obj: dict, skip: tuple = ()) -> str:
+    """key  value lines (floats to 4 significant digits)."""
+    width = max((len(k) for k in obj), default=0)
+    return "\n".join(f"{k:{width}s}  {v:.4g}" if isinstance(v, float) else f"{k:{width}s}  {v}"
+                     for k, v in obj.items() if k not in skip)
+
+
+def throw(a: ThrowArgs) -> None:
     from ttmjx.world import thrower
-    if args.n < 1:
-        raise ValueError(f"--n must be >= 1, got {args.n}")
-    rep = thrower.throw_report(_world(args), args.n, args.seed)
+    if a.n < 1:
+        raise ValueError(f"--n must be >= 1, got {a.n}")
+    rep = thrower.throw_report(a.world(), a.n, a.seed)
     errs = [((t["aim"][0] - t["bounce"][0]) ** 2 + (t["aim"][1] - t["bounce"][1]) ** 2) ** 0.5
             for t in rep["throws"]]
-    _print(args, rep, f"{args.n} {args.distribution} throws; bounce error vs aim: max "
-                      f"{100 * max(errs):.2f} cm, mean {100 * sum(errs) / len(errs):.2f} cm")
+    report(a, rep, f"{a.n} {a.distribution} throws; bounce error vs aim: max "
+                   f"{100 * max(errs):.2f} cm, mean {100 * sum(errs) / len(errs):.2f} cm")
 
 
-def cmd_bench(args):
-    from ttmjx.tools import bench
-    out = bench.bench(_world(args), args.backend, args.batch, args.threads)
-    text = "\n".join(f"{k:32s} {v:,.1f}" if isinstance(v, float) else f"{k:32s} {v}" for k, v in out.items())
-    _print(args, out, text)
+def bench(a: BenchArgs) -> None:
+    from ttmjx.tools import bench as physics_bench
+    out = physics_bench.bench(a.world(), a.backend, a.batch, a.threads)
+    report(a, out, table(out))
 
 
-def cmd_render(args):
-    from ttmjx.tools import render
-    path = render.render_throws(_world(args), args.out, args.n, args.seed, source=args.source)
-    _print(args, {"video": path}, f"wrote {path}")
+def render(a: RenderArgs) -> None:
+    from ttmjx.tools import render as video
+    path = video.render_throws(a.world(), a.out, a.n, a.seed, source=a.source)
+    report(a, {"video": path}, f"wrote {path}")
 
 
-def cmd_sim(args):
-    """A short simulation run: throws on the chosen backend with the scripted striker."""
+def sim(a: SimArgs) -> None:
     from ttmjx.tools import simrun
-    out = simrun.run(_world(args), args.backend, args.n, args.seed)
-    _print(args, out, "\n".join(f"{k:16s} {v}" for k, v in out.items()))
+    out = simrun.run(a.world(), a.backend, a.n, a.seed)
+    report(a, out, table(out))
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from ttmjx.world.config import CONTROL_RATES, THROW_DISTRIBUTIONS
-    p = argparse.ArgumentParser(prog="ttmjx", description=__doc__)
-    sub = p.add_subparsers(dest="cmd", required=True)
-
-    def common(sp, dist=True):
-        sp.add_argument("--json", action="store_true", help="print one JSON object as the last line")
-        if dist:
-            sp.add_argument("--distribution", default="narrow", choices=THROW_DISTRIBUTIONS)
-            sp.add_argument("--spin", action="store_true", help="throws with spin (off by default, as in the paper)")
-        sp.add_argument("--control-hz", type=int, choices=CONTROL_RATES, default=None)
-
-    sp = sub.add_parser("throw", help="sample throws and simulate their first bounce")
-    common(sp)
-    sp.add_argument("--n", type=int, default=10)
-    sp.add_argument("--seed", type=int, default=0)
-    sp.set_defaults(fn=cmd_throw)
-
-    sp = sub.add_parser("bench", help="physics throughput of a backend")
-    common(sp)
-    sp.add_argument("--backend", choices=("c", "mjx"), default="c")
-    sp.add_argument("--batch", type=int, default=1024)
-    sp.add_argument("--threads", type=int, default=None, help="C backend threads (default: all cores)")
-    sp.set_defaults(fn=cmd_bench)
-
-    sp = sub.add_parser("render", help="write a short video (GIF) of a few throws, headless")
-    common(sp)
-    sp.add_argument("--n", type=int, default=3)
-    sp.add_argument("--seed", type=int, default=0)
-    sp.add_argument("--source", choices=("scripted", "hold"), default="scripted")
-    sp.add_argument("--out", default="throws.gif")
-    sp.set_defaults(fn=cmd_render)
-
-    sp = sub.add_parser("sim", help="a short simulation run that prints what it did")
-    common(sp)
-    sp.add_argument("--backend", choices=("c", "mjx"), default="c")
-    sp.add_argument("--n", type=int, default=64)
-    sp.add_argument("--seed", type=int, default=0)
-    sp.set_defaults(fn=cmd_sim)
-
-    for register in _extensions():
-        register(sub, common)
-    return p
+def demos(a: DemosArgs) -> None:
+    from ttmjx.tools import demos as demonstrations
+    out = demonstrations.make_dataset(a.world(), a.source, a.n, a.seed, a.out, a.backend,
+                                      progress=not a.json)
+    report(a, out, f"{table(out)}\nwrote {a.out}")
 
 
-def _extensions():
-    """Subcommands defined by later stages of the pipeline (demos, train, eval, export, robot)."""
-    regs = []
-    for mod in ("ttmjx.demos_cli", "training.cli", "eval.cli", "deploy.cli"):
-        try:
-            m = __import__(mod, fromlist=["register"])
-        except ModuleNotFoundError as e:
-            if e.name and mod.startswith(e.name.split(".")[0]) and e.name in (mod, mod.rsplit(".", 1)[0]):
-                continue
-            raise
-        if hasattr(m, "register"):
-            regs.append(m.register)
-    return regs
+def plot_landings(a: PlotArgs) -> None:
+    from ttmjx.tools import demos as demonstrations
+    path = demonstrations.plot_landings(a.dir, a.out)
+    report(a, {"plot": path}, f"wrote {path}")
+
+
+def given(argv: list[str], *flags: str) -> bool:
+    """Whether any of `flags` ('--a-b', also spelled --a_b or --a-b=V) is on the command line."""
+    return any(arg.split("=")[0].replace("_", "-") in flags for arg in argv)
+
+
+def parse_train(argv: list[str]) -> TrainArgs:
+    """--preset P picks the defaults tyro shows and overrides (`--preset` is RunConfig.preset)."""
+    name = "default"
+    for i, arg in enumerate(argv):
+        if arg.startswith("--preset="):
+            name = arg.split("=", 1)[1]
+        elif arg == "--preset" and i + 1 < len(argv):
+            name = argv[i + 1]
+    if name not in PRESET_NAMES:
+        raise ValueError(f"--preset {name!r}: expected one of {', '.join(PRESET_NAMES)}")
+    base = preset(name)
+    if given(argv, "--world.control-hz", "--world.max-physics-dt") and not given(argv, "--world.physics-dt"):
+        argv = ["--world.physics-dt", "None", *argv]   # derived again from the new rate
+    a = parse_args("train", TrainArgs, argv, default=TrainArgs(config=base))
+    if a.config.seed != 0 and not given(argv, "--run-dir"):
+        a = dataclasses.replace(a, config=dataclasses.replace(
+            a.config, run_dir=f"{base.run_dir}-seed{a.config.seed}"))
+    return a
+
+
+def train(a: TrainArgs) -> None:
+    from eval.evaluate import training_evaluation
+    from training.trainer import Run
+    cfg = a.config
+    out = Run(cfg, evaluate=training_evaluation(cfg), progress=not a.json).run(max_iterations=a.max_iterations)
+    report(a, out, table(out))
+
+
+def evaluate(a: EvalArgs) -> None:
+    from eval.evaluate import evaluate_checkpoint
+    # (path, goals, per_goal, distribution, backend, seed, member)
+    out = evaluate_checkpoint(a.run, a.goals, a.per_goal, a.distribution, a.backend, a.seed, a.member)
+    text = table(out, skip=("per_goal",))
+    for g, m in out.get("per_goal", {}).items():
+        text += (f"\ngoal {g}: <=30cm {m['within_30cm']:.0%} <=20cm {m['within_20cm']:.0%} "
+                 f"hit {m['hit_rate']:.0%}")
+    report(a, out, text)
+
+
+def export(a: ExportArgs) -> None:
+    from deploy.export import export_checkpoint, load_export
+    path = export_checkpoint(a.checkpoint, a.out, step=a.step, member=a.member, ensemble=a.ensemble,
+                             control_hz=a.control_hz)
+    policy, contract = load_export(path)       # the export must pass its own checks
+    spec, source = policy.spec, policy.contract_doc["source"]["checkpoint"]
+    out = {"out": path, "source": source, "kind": spec.kind, "hidden": spec.hidden,
+           "layers": spec.layers, "members": policy.members, "control_hz": contract.control_hz,
+           "policy_hash": policy.policy_hash, "self_test_error": policy.self_test_error}
+    report(a, out, f"exported {source} -> {path} ({spec.kind} {spec.layers}x{spec.hidden}, "
+                   f"{policy.members} member(s), {contract.control_hz:g} Hz); golden self-test "
+                   f"max error {policy.self_test_error:.2g}")
+
+
+def robot_run(a: RobotRunArgs) -> None:
+    from deploy.cli import run_fake
+    from deploy.goals import session_goals
+    from deploy.runner import RunnerConfig
+    goals = session_goals(a.goals, a.n, a.seed)
+    config = RunnerConfig(stale_s=a.stale_ms / 1000.0)
+    if a.station == "sim":
+        from deploy.station import run_sim
+        out = run_sim(a.policy, goals, a.out, seed=a.seed, distribution=a.distribution,
+                      realtime=a.realtime, charge_compute=not a.no_compute_time, config=config)
+    else:
+        out = run_fake(goals, a.out, a.policy, None, None, config, a.realtime)
+    m = out.get("metrics", {})
+    report(a, out, f"{out['episodes']}/{out['goals']} episodes; " +
+           (f"within 30 cm {m.get('within_30cm', 0):.0%}, 20 cm {m.get('within_20cm', 0):.0%}, "
+            f"hit rate {m.get('hit_rate', 0):.0%}; " if m else "") +
+           f"faults {out['faults']}; logs in {out['out']}")
+    if out["episodes"] != out["goals"]:
+        sys.exit(1)
+
+
+def robot_bench(a: RobotBenchArgs) -> None:
+    from deploy.numpy_policy import benchmark
+    out = benchmark(a.kind, a.hidden, a.layers, a.members, steps=a.steps, threads=a.threads)
+    text = (f"{a.kind} {a.layers}x{a.hidden} x{a.members} on {a.threads} thread(s), "
+            f"core {out['cpu']}: step p50 {out['p50_ms']:.3f} ms, p99 {out['p99_ms']:.3f} ms, "
+            f"max {out['max_ms']:.3f} ms")
+    if "prepared_p50_ms" in out:
+        text += (f"; after prepare(): p50 {out['prepared_p50_ms']:.3f} ms, p99 "
+                 f"{out['prepared_p99_ms']:.3f} ms (prepare p50 {out['prepare_p50_ms']:.3f} ms)")
+    report(a, out, text)
+
+
+class Command(NamedTuple):
+    args: type                                   # frozen dataclass: its fields are the flags
+    run: Callable[[Any], None]                   # does the work and prints
+    help: str                                    # one line for `ttmjx --help`
+    parse: Callable[[list[str]], Any] | None = None   # instead of tyro on `args`' own defaults
+
+
+COMMANDS: dict[str, Command] = {
+    "throw": Command(ThrowArgs, throw, "sample throws and simulate their first bounce"),
+    "bench": Command(BenchArgs, bench, "physics throughput of a backend"),
+    "render": Command(RenderArgs, render, "write a short video (GIF) of a few throws, headless"),
+    "sim": Command(SimArgs, sim, "a short simulation run that prints what it did"),
+    "demos": Command(DemosArgs, demos, "collect bootstrap demonstrations into a dataset directory"),
+    "plot-landings": Command(PlotArgs, plot_landings, "draw a dataset's landing points over the table (PNG)"),
+    "train": Command(TrainArgs, train, "GoalsEye training: demonstrations, GCBC, self-practice, evaluation",
+                     parse_train),
+    "eval": Command(EvalArgs, evaluate, "goal-reaching metrics of a run or checkpoint"),
+    "export": Command(ExportArgs, export, "safetensors weights + contract + golden self-test for the robot runner"),
+    "robot run": Command(RobotRunArgs, robot_run, "the robot runner: play an exported policy on a station"),
+    "robot bench": Command(RobotBenchArgs, robot_bench, "numpy policy step latency on one CPU core"),
+}
+
+
+# --------------------------------------------------------------------------------------------
+# Parsing and errors
+# --------------------------------------------------------------------------------------------
+def fail(name: str, message: str) -> NoReturn:
+    print(f"ttmjx{' ' + name if name else ''}: error: {' '.join(message.split())}", file=sys.stderr)
+    sys.exit(2)
+
+
+def one_line(box: str) -> str:
+    """tyro's boxed error as one line: the box's first section, without borders or colours."""
+    kept = []
+    for line in re.sub(r"\x1b\[[0-9;]*m", "", box).splitlines():
+        line = line.strip()
+        if line.startswith(("╭", "╰")):
+            continue
+        line = line.strip("│").strip()
+        if line and set(line) == {"─"}:
+            break
+        kept.append(line)
+    return " ".join(kept) or box
+
+
+def parse_args(name: str, cls: type, argv: list[str], default: Any = None) -> Any:
+    """tyro on `cls` (starting from `default` if given); a parse error exits 2 with one line."""
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):
+            args = tyro.cli(cls, args=argv, prog=f"ttmjx {name}",
+                            **({} if default is None else {"default": default}))
+    except SystemExit as e:
+        if e.code == 2:
+            fail(name, one_line(err.getvalue()))
+        sys.stderr.write(err.getvalue())
+        raise
+    sys.stderr.write(err.getvalue())
+    return args
+
+
+def usage(group: str = "") -> str:
+    names = [n for n in COMMANDS if n.startswith(group)]
+    width = max(map(len, names))
+    return "\n".join([f"usage: ttmjx {group or 'COMMAND'}{' COMMAND' if group else ''} [--help] [OPTIONS]",
+                      "", "commands:", *(f"  {n:{width}s}  {COMMANDS[n].help}" for n in names), "",
+                      "`ttmjx COMMAND --help` lists every option with its type, default and meaning."])
+
+
+def command_of(argv: list[str]) -> tuple[str, list[str]]:
+    """(subcommand name, its arguments); `ttmjx [GROUP] --help` prints the table and exits."""
+    for k in (2, 1):
+        if " ".join(argv[:k]) in COMMANDS:
+            return " ".join(argv[:k]), argv[k:]
+    group = argv[0] if argv and any(n.startswith(argv[0] + " ") for n in COMMANDS) else ""
+    rest = argv[1:] if group else argv
+    if rest[:1] in (["-h"], ["--help"]):
+        print(usage(group))
+        sys.exit(0)
+    expected = ", ".join(n.removeprefix(group).strip() for n in COMMANDS if n.startswith(group))
+    fail(group, f"{'unknown command ' + repr(rest[0]) if rest else 'no command'}; expected one of {expected}")
 
 
 def enable_compile_cache():
@@ -128,19 +456,15 @@ def enable_compile_cache():
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
-def main(argv=None):
-    enable_compile_cache()
-    parser = build_parser()
-    args, unknown = parser.parse_known_args(argv)
-    if hasattr(args, "rest"):  # typed config overrides for tyro (ttmjx train)
-        args.rest = [a for a in list(args.rest) + unknown if a != "--"]
-    elif unknown:
-        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+def main(argv: list[str] | None = None) -> None:
+    name, rest = command_of(sys.argv[1:] if argv is None else list(argv))
+    cmd = COMMANDS[name]
     try:
-        args.fn(args)
-    except (ValueError, FileExistsError, FileNotFoundError) as e:
-        print(f"ttmjx {args.cmd}: error: {e}", file=sys.stderr)
-        sys.exit(2)
+        args = cmd.parse(rest) if cmd.parse else parse_args(name, cmd.args, rest)
+        enable_compile_cache()
+        cmd.run(args)
+    except (ValueError, FileExistsError, FileNotFoundError, NotADirectoryError) as e:
+        fail(name, str(e))
 
 
 if __name__ == "__main__":
