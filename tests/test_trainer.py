@@ -204,7 +204,7 @@ def test_eval_cli_reports_json_metrics(trained):
     assert sorted(res5["per_goal"]) == ["A", "B", "C", "D", "E"] and res5["goals"] == 10
     bad = subprocess.run([sys.executable, "-m", "ttmjx.cli", "eval", "/nonexistent/run"], capture_output=True,
                          text=True, timeout=120)
-    assert bad.returncode == 2 and "neither a run directory" in bad.stderr
+    assert bad.returncode == 2 and "does not exist" in bad.stderr
 
 
 def test_robot_practice_closes_the_loop(trained, demo_dir, tmp_path):

@@ -23,12 +23,12 @@ JOINT_NAMES = ("gantry_x", "gantry_y", "j1", "j2", "j3", "j4", "j5", "j6")
 @dataclasses.dataclass(frozen=True)
 class Table:
     """ITTF table and net (PHYSICS.md)."""
-    length: float = 2.74
-    width: float = 1.525
-    top_z: float = 0.76
-    thickness: float = 0.03
-    net_height: float = 0.1525
-    net_length: float = 1.83
+    length: float = 2.74                  # m, along x
+    width: float = 1.525                  # m, along y
+    top_z: float = 0.76                   # m, height of the playing surface
+    thickness: float = 0.03               # m, of the table top
+    net_height: float = 0.1525            # m, above the playing surface
+    net_length: float = 1.83              # m, across the table (it overhangs the sides)
     # The collision box of the net is thicker than a real net (2 cm): at 1 ms steps a ball at
     # 20 m/s moves 2 cm a step, and the thicker box keeps it from tunnelling.
     net_thickness: float = 0.02
@@ -44,12 +44,12 @@ class Table:
 
 @dataclasses.dataclass(frozen=True)
 class Ball:
-    radius: float = 0.02
-    mass: float = 0.0027
+    radius: float = 0.02                  # m (40 mm ball)
+    mass: float = 0.0027                  # kg (2.7 g)
     drag_coefficient: float = 0.47        # Cd in F = 1/2 rho Cd A |v| v
     magnus_coefficient: float = 1.0       # MuJoCo fluidcoef[4]: F_M = C_M rho V (w x v)
     angular_drag_coefficient: float = 1.5 # MuJoCo fluidcoef[2]
-    air_density: float = 1.225
+    air_density: float = 1.225           # kg/m^3 at sea level, 15 C
 
     @property
     def hollow_inertia(self) -> float:
@@ -94,15 +94,19 @@ class Robot:
     base_y: float = 0.0
     base_z: float = 0.55
     lower: tuple = (-0.25, -0.9, -165 * DEG, -110 * DEG, -110 * DEG, -160 * DEG, -120 * DEG, -400 * DEG)
+    """Joint lower limits (gantry m, arm rad), JOINT_NAMES order."""
     upper: tuple = (0.25, 0.9, 165 * DEG, 110 * DEG, 70 * DEG, 160 * DEG, 120 * DEG, 400 * DEG)
+    """Joint upper limits (gantry m, arm rad)."""
     max_speed: tuple = (2.0, 2.0, 250 * DEG, 250 * DEG, 250 * DEG, 420 * DEG, 590 * DEG, 600 * DEG)
-    # Fraction of the speed limits the command clipping uses, so the servo's lag never pushes
-    # a joint past the real limit.
+    """Joint speed limits (m/s, rad/s)."""
     speed_margin: float = 0.92
+    """Fraction of the speed limits the command clipping uses, so the servo's lag never pushes a
+    joint past the real limit."""
     link_masses: tuple = (6.215, 3.067, 3.909, 2.944, 1.328, 0.546, 0.137)
+    """Arm link masses (kg), base to wrist."""
     gantry_mass: float = 10.0                 # assumed
     paddle_mass: float = 0.15                 # assumed
-    extension: float = 0.17426
+    extension: float = 0.17426               # m, flange to blade centre
     blade_half_size: tuple = (0.075, 0.08)    # along the extension, across (assumed 15 x 16 cm)
     # Thicker than a real blade: a 20 m/s ball sinks 3.1 cm into the paddle contact (measured), and
     # a 3 cm box keeps its centre off the blade's mid-plane up to ~22 m/s (tests/test_physics.py).
@@ -114,7 +118,9 @@ class Robot:
     servo_damping: float = 1.3                # damping ratio at the home-pose inertia (> 1: pose changes
                                               # that add inertia keep the servo near critical)
     home: tuple = (0.0, 0.0, 0.0, 0.35, -0.35, 0.0, -0.2, 0.0)
+    """Pose at the start of every episode."""
     home_noise: tuple = (0.02, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05)
+    """Half-width of the uniform perturbation of the home pose per episode."""
 
     def __post_init__(self):
         for name in ("lower", "upper", "max_speed", "armature", "home", "home_noise"):
@@ -137,7 +143,9 @@ class Throws:
     net) is redrawn, so each distribution is its ranges conditioned on feasible throws.
     """
     name: str = "narrow"
+    """Distribution: narrow, any or varied."""
     spin: bool = False
+    """Throws with spin (off in the paper)."""
     max_spin: float = 150.0                    # rad/s per axis when spin is on
     # narrow
     narrow_launch: tuple = (1.75, 0.35, 0.95)
@@ -161,7 +169,7 @@ class Throws:
     varied_distance: tuple = (2.5, 2.85)
     # Launch solve (ttmjx/world/thrower.py).
     candidates: int = 16                      # most candidates drawn per throw; first valid kept
-    newton_iters: int = 5
+    newton_iters: int = 5                     # Newton steps of the launch-velocity solve
     max_pitch: float = 0.6                    # rad: low arcs only (sets the slowest `any` speed)
     net_margin: float = 0.02                  # m: the ball's bottom clears the net tape by this
     solve_tol: float = 0.005                  # m: predicted first bounce within this of the aim
