@@ -63,3 +63,10 @@ def check_fits(cfg: RunConfig, available: int | None = None, fraction: float = 0
         raise ValueError(f"this run needs ~{total / GiB:.1f} GiB of device memory, {big / GiB:.1f} GiB of it for the "
                          f"{name}; the device has {have / GiB:.1f} GiB: lower those settings")
     return parts
+
+
+def episodes_that_fit(world, fraction: float = 0.5, available: int | None = None) -> int:
+    """The most episodes of `world` one batch may simulate: `fraction` of the device's memory
+    over an episode's simulation state and record."""
+    per_episode = MJX_EPISODE_BYTES + world.horizon * CACHE_STEP_VALUES * FLOAT
+    return int(fraction * (available if available is not None else device_bytes()) // per_episode)

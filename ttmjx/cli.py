@@ -16,7 +16,7 @@ import json
 import os
 import re
 import sys
-from typing import Annotated, Any, Callable, Literal, NamedTuple, NoReturn
+from typing import Annotated, Any, Callable, ClassVar, Literal, NamedTuple, NoReturn
 
 import tyro
 
@@ -41,6 +41,54 @@ class Report:
     json: Flag = False
     """Print one JSON object as the last line (non-finite numbers as null)."""
 
+    # {field: (lowest, highest or None)} checked when the arguments are built, before any work.
+    BOUNDS: ClassVar[dict] = {}
+    # Fields naming a file or directory this command creates: refused up front if it exists as
+    # the other kind (a file where a directory goes, or the reverse).
+    NEW_DIRS: ClassVar[tuple] = ()
+    NEW_FILES: ClassVar[tuple] = ()
+
+    def __post_init__(self):
+        for name, (low, high) in self.BOUNDS.items():
+            check_range(name, getattr(self, name), low, high() if callable(high) else high)
+        for name in self.NEW_DIRS:
+            check_new_path(name, getattr(self, name), want_dir=True)
+        for name in self.NEW_FILES:
+            check_new_path(name, getattr(self, name), want_dir=False)
+
+
+def check_range(name: str, value, low, high) -> None:
+    """ValueError naming the flag, the value and the expected range (None values are unset)."""
+    if value is None:
+        return
+    flag = "--" + name.replace("_", "-")
+    if isinstance(value, float) and value != value:
+        raise ValueError(f"{flag} is NaN; expected a number >= {low}")
+    if value < low or (high is not None and value > high):
+        expected = f">= {low}" if high is None else f"between {low} and {high}"
+        raise ValueError(f"{flag} {value}: expected {expected}")
+
+
+def check_new_path(name: str, path: str | None, want_dir: bool) -> None:
+    flag = "--" + name.replace("_", "-")
+    if path is None:
+        return
+    if want_dir and os.path.isfile(path):
+        raise ValueError(f"{flag} {path!r} is a file; expected a new directory")
+    if not want_dir and os.path.isdir(path):
+        raise ValueError(f"{flag} {path!r} is a directory; expected a file path")
+    parent = os.path.dirname(os.path.abspath(path))
+    while not os.path.exists(parent):
+        parent = os.path.dirname(parent)
+    if not os.path.isdir(parent) or not os.access(parent, os.W_OK):
+        raise ValueError(f"{flag} {path!r}: cannot write under {parent!r} (not a writable directory)")
+
+
+def batch_limit() -> int:
+    """Most episodes one command may simulate at once: half the device memory (training/budget.py)."""
+    from training.budget import episodes_that_fit
+    return episodes_that_fit(World())
+
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class WorldArgs(Report):
@@ -59,6 +107,7 @@ class WorldArgs(Report):
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class ThrowArgs(WorldArgs):
     """Sample throws and simulate their first bounce; reports launch, aim and bounce of each."""
+    BOUNDS: ClassVar[dict] = {"n": (1, batch_limit)}
     n: int = 10
     """Number of throws."""
     seed: int = 0
@@ -68,6 +117,7 @@ class ThrowArgs(WorldArgs):
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class BenchArgs(WorldArgs):
     """Physics throughput of a backend against the raw mujoco.rollout baseline (docs/BENCHMARKS.md)."""
+    BOUNDS: ClassVar[dict] = {"batch": (1, batch_limit), "threads": (1, 1024)}
     backend: Backend = "c"
     """Physics backend: MuJoCo C (mujoco.rollout) or MJX."""
     batch: int = 1024
@@ -78,7 +128,9 @@ class BenchArgs(WorldArgs):
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class RenderArgs(WorldArgs):
-    """Write a short video (GIF) of a few throws, headless (OSMesa or EGL)."""
+    """Write a short video (GIF) of a few throws, headless (EGL, then OSMesa)."""
+    BOUNDS: ClassVar[dict] = {"n": (1, 20)}
+    NEW_FILES: ClassVar[tuple] = ("out",)
     n: int = 3
     """Number of throws."""
     seed: int = 0
@@ -92,6 +144,7 @@ class RenderArgs(WorldArgs):
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class SimArgs(WorldArgs):
     """A short simulation run: the scripted striker plays N throws; prints what it did."""
+    BOUNDS: ClassVar[dict] = {"n": (1, batch_limit)}
     backend: Backend = "c"
     """Physics backend: MuJoCo C (mujoco.rollout) or MJX."""
     n: int = 64
@@ -103,6 +156,8 @@ class SimArgs(WorldArgs):
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class DemosArgs(WorldArgs):
     """Collect bootstrap demonstrations into a new dataset directory (docs/DATA.md)."""
+    BOUNDS: ClassVar[dict] = {"n": (1, batch_limit)}
+    NEW_DIRS: ClassVar[tuple] = ("out",)
     source: Literal["scripted", "es"] = "scripted"
     """Demonstrator: the scripted striker or the ES policy."""
     n: int = 1000
@@ -118,6 +173,7 @@ class DemosArgs(WorldArgs):
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class PlotArgs(Report):
     """Draw a dataset's landing points over the table (PNG)."""
+    NEW_FILES: ClassVar[tuple] = ("out",)
     dir: DatasetPath
     """Dataset directory (ttmjx demos --out)."""
     out: str | None = None
@@ -133,6 +189,7 @@ class TrainArgs(Report):
     `ttmjx train --preset paper-sim --seed 1 --train.members 4`. A non-zero --seed without
     --run-dir runs in the preset's run directory + '-seedN'. The same command resumes a run.
     """
+    BOUNDS: ClassVar[dict] = {"max_iterations": (1, None)}
     config: Annotated[RunConfig, tyro.conf.arg(name="")]
     max_iterations: int | None = None
     """Stop (with a checkpoint) after this many iterations; the same command resumes later."""
@@ -141,6 +198,7 @@ class TrainArgs(Report):
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class EvalArgs(Report):
     """Goal-reaching metrics of a run's checkpoint (its moving-average policy)."""
+    BOUNDS: ClassVar[dict] = {"per_goal": (1, batch_limit), "member": (0, None)}
     run: RunPath
     """Run directory (or its checkpoints/ directory)."""
     distribution: Literal[THROW_DISTRIBUTIONS] | None = None
@@ -160,6 +218,8 @@ class EvalArgs(Report):
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class ExportArgs(Report):
     """Safetensors weights + contract + golden self-test of a checkpoint, for the robot runner."""
+    BOUNDS: ClassVar[dict] = {"step": (0, None), "member": (0, None)}
+    NEW_DIRS: ClassVar[tuple] = ("out",)
     checkpoint: RunPath
     """A run directory holding checkpoints/, or a checkpoint directory."""
     out: str
@@ -177,6 +237,8 @@ class ExportArgs(Report):
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class RobotRunArgs(Report):
     """Play an exported policy toward goals on a station and log the episodes."""
+    BOUNDS: ClassVar[dict] = {"n": (1, 100_000), "stale_ms": (0.1, 10_000.0)}
+    NEW_DIRS: ClassVar[tuple] = ("out",)
     policy: str
     """An export directory (ttmjx export --out)."""
     station: Literal[STATIONS]
@@ -202,6 +264,8 @@ class RobotRunArgs(Report):
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class RobotBenchArgs(Report):
     """Step latency of the numpy policy on one CPU core (the robot side's budget)."""
+    BOUNDS: ClassVar[dict] = {"hidden": (1, 8192), "layers": (1, 16), "members": (1, 64), "steps": (1, 10**6),
+                              "threads": (1, 1024)}
     kind: Literal["lstm", "framestack"] = "lstm"
     """Policy type."""
     hidden: int = 1024
@@ -233,8 +297,6 @@ def table(obj: dict, skip: tuple = ()) -> str:
 
 def throw(a: ThrowArgs) -> None:
     from ttmjx.world import thrower
-    if a.n < 1:
-        raise ValueError(f"--n must be >= 1, got {a.n}")
     rep = thrower.throw_report(a.world(), a.n, a.seed)
     errs = [((t["aim"][0] - t["bounce"][0]) ** 2 + (t["aim"][1] - t["bounce"][1]) ** 2) ** 0.5
             for t in rep["throws"]]
@@ -304,6 +366,8 @@ def train(a: TrainArgs) -> None:
     cfg = a.config
     out = Run(cfg, evaluate=training_evaluation(cfg), progress=not a.json).run(max_iterations=a.max_iterations)
     report(a, out, table(out))
+    if out["stopped_by_signal"]:
+        sys.exit(128 + out["stopped_by_signal"])   # the shell's convention for a signalled exit
 
 
 def evaluate(a: EvalArgs) -> None:
@@ -390,9 +454,16 @@ COMMANDS: dict[str, Command] = {
 # --------------------------------------------------------------------------------------------
 # Parsing and errors
 # --------------------------------------------------------------------------------------------
-def fail(name: str, message: str) -> NoReturn:
+def fail(name: str, message: str, code: int = 2) -> NoReturn:
+    """One line on stderr and exit `code` (2: bad input; 1: the work itself failed)."""
     print(f"ttmjx{' ' + name if name else ''}: error: {' '.join(message.split())}", file=sys.stderr)
-    sys.exit(2)
+    sys.exit(code)
+
+
+def file_error(e: OSError) -> str:
+    """'PATH: cause' of a failed file operation."""
+    where = f"{e.filename}: " if e.filename else ""
+    return f"{where}{e.strerror or e}"
 
 
 def one_line(box: str) -> str:
@@ -406,7 +477,8 @@ def one_line(box: str) -> str:
         if line and set(line) == {"─"}:
             break
         kept.append(line)
-    return " ".join(kept) or box
+    # A bound checked by an argument class: tyro prefixes its message with the class name.
+    return re.sub(r"^Error parsing \w+Args: ", "", " ".join(kept)) or box
 
 
 def parse_args(name: str, cls: type, argv: list[str], default: Any = None) -> Any:
@@ -463,8 +535,14 @@ def main(argv: list[str] | None = None) -> None:
         args = cmd.parse(rest) if cmd.parse else parse_args(name, cmd.args, rest)
         enable_compile_cache()
         cmd.run(args)
-    except (ValueError, FileExistsError, FileNotFoundError, NotADirectoryError) as e:
-        fail(name, str(e))
+    except (ValueError, FileExistsError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as e:
+        fail(name, str(e) if not isinstance(e, OSError) or not e.strerror else file_error(e))
+    except OSError as e:          # permission denied, disk full: the environment, not the input
+        fail(name, file_error(e), code=1)
+    except (RuntimeError, ArithmeticError) as e:   # e.g. training.trainer.NonFiniteError
+        fail(name, f"{type(e).__name__}: {e}", code=1)
+    except KeyboardInterrupt:
+        fail(name, "interrupted", code=130)
 
 
 if __name__ == "__main__":
