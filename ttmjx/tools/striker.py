@@ -3,31 +3,35 @@
 It produces the paper's non-goal-directed bootstrap data ("Bootstrapping from non-goal-directed
 data"): it hits the thrown ball after its bounce and returns it toward a RANDOM point of the
 opponent's half drawn per episode, so that the landings spread over the half; the commanded
-goal in the observation is ignored. Every control step it
+goal in the observation is ignored. Every control step (`striker_step`) runs four stages:
 
-1. tracks the ball: its own-half bounce, and its spin, estimated from the observed velocity
-   change (the residual of gravity and drag is the Magnus force; the observation has no spin);
-2. predicts the flight with the world's air model (`ballphysics`, RK2 at `predict_dt`) and the
-   table `Surface` bounce model, and picks the hit: after the bounce, where the ball crosses the
-   episode's hitting plane x = hit_x (or earlier: before it falls too low, or late in the
-   episode, so that the return can land in time);
-3. solves the stroke: Newton on the face normal (yaw, pitch) and the blade speed along it, so
-   that the ball, after the paddle `Surface` bounce, flies with drag and Magnus from the hit to
-   the landing target in the flight time that clears the net by the episode's clearance;
-4. solves the 8-DOF inverse kinematics (damped Gauss-Newton on `forward_kinematics`, the chain of
-   scene.py in jnp, warm-started from the last step) for the blade centre one ball radius plus
-   half a blade behind the hit, with the stroke's normal and the episode's blade roll, and the
-   joint velocities that move the blade centre at the stroke's velocity (`blade_joint_velocity`);
-5. steps a joint-space reference: a cubic approach to a back-swing pose, a constant-acceleration
-   strike that reaches the hit velocity `hold_s` before the hit, a constant-velocity hold through
-   it, then a decaying follow-through. The command is the reference plus the position servo's
-   velocity and acceleration feed-forward, kept inside the joint ranges and the speed clipping of
+1. predict the ball (`track_ball`, `predict_hit`): its own-half bounce, and its spin, estimated
+   from the observed velocity change (the residual of gravity and drag is the Magnus force; the
+   observation has no spin); then its flight with the world's air model (`ballphysics`, RK2 at
+   `predict_dt`) and the table `Surface` bounce model, up to the hit: after the bounce, where the
+   ball crosses the episode's hitting plane x = hit_x (or earlier: before it falls too low, or
+   late in the episode, so that the return can land in time);
+2. choose the strike (`choose_stroke`): Newton on the face normal (yaw, pitch) and the blade
+   speed along it, so that the ball, after the paddle `Surface` bounce, flies with drag and
+   Magnus from the hit to the landing target in the flight time that clears the net by the
+   episode's clearance;
+3. solve the pose (`solve_pose`, `hit_joint_velocity`): the 8-DOF inverse kinematics (damped
+   Gauss-Newton on `forward_kinematics`, the chain of scene.py in jnp, warm-started from the last
+   step) for the blade centre one ball radius plus half a blade behind the hit, with the stroke's
+   normal and the episode's blade roll, and the joint velocities that move the blade centre at
+   the stroke's velocity (`blade_joint_velocity`);
+4. time the swing (`swing_reference`, `limit_reference`, `servo_command`): a joint-space
+   reference: a cubic approach to a back-swing pose, a constant-acceleration strike that reaches
+   the hit velocity `hold_s` before the hit, a constant-velocity hold through it, then a decaying
+   follow-through. The command is the reference plus the position servo's velocity and
+   acceleration feed-forward, kept inside the joint ranges and the speed clipping of
    `env.command` (the environment never has to clip it).
 
-Per-episode randomness, drawn in `init`: landing target, net clearance, hitting plane, blade roll
-(size and side) and face, strike duration, and "perturb 4 of the 8 joints" (as in the paper): a
-constant offset on the commands of 4 random joints, and a random posture preference for the same
-4 joints (the posture only moves the robot within the redundancy of the 8-DOF chain).
+Per-episode randomness, drawn in `init` (`draw_episode`): landing target, net clearance,
+hitting plane, blade roll (size and side) and face, strike duration, and "perturb 4 of the 8
+joints" (as in the paper): a constant offset on the commands of 4 random joints, and a random
+posture preference for the same 4 joints (the posture only moves the robot within the redundancy
+of the 8-DOF chain).
 
 Pure jnp with no Python control flow on traced values: it runs inside the jit-compiled MJX rollout
 and, jit-compiled and vmapped, between the MuJoCo C backend's physics calls.
@@ -43,7 +47,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttmjx.world import backends, ballphysics
+from ttmjx.world import backends, ballphysics, observation
 from ttmjx.world.config import World
 from ttmjx.world.env import Obs
 
@@ -482,8 +486,213 @@ def hermite(q0, v0, q1, v1, span, tau):
 
 
 # ----------------------------------------------------------------------------------------------
-# The policy
+# The policy in four stages: predict the ball, choose the strike, solve the pose, time the swing.
+# Each stage is a pure function of one throw's arrays; `striker_step` composes them.
 # ----------------------------------------------------------------------------------------------
+
+# 1. Predict the ball ------------------------------------------------------------------------
+
+def track_ball(cfg: World, scfg: StrikerConfig, p, v, v_prev, spin, first):
+    """The ball seen at one control step: position p [3] and velocity v [3], after the velocity
+    v_prev [3] one step earlier; spin [3] is the estimate so far, first () the episode's first
+    step. Returns (spin [3], bounce_now ()): the new spin estimate, and whether the ball bounced
+    on the robot's half during this step."""
+    # the bounce shows as the vertical velocity turning up near the table top
+    bounce_now = (v_prev[2] < 0.0) & (v[2] > 0.0) & (p[0] < 0.0) & (p[2] < cfg.table.top_z + 0.2)
+    # the observation has no spin: the velocity change in free flight reveals it (Magnus) ...
+    spin_est, resid = estimate_spin(cfg, v_prev, v, cfg.control_dt)
+    # ... but across a bounce the change is the contact's, so the bounce model carries the spin
+    _, spin_bounce = bounce(scfg.model.table, v_prev, spin, jnp.array([0.0, 0.0, 1.0]), jnp.zeros(3),
+                            cfg.ball.radius)
+    # an air force no spin could make is some other contact (net, paddle): keep the old estimate
+    free = ~first & ~bounce_now & (jnp.linalg.norm(resid) < 20.0)
+    return jnp.where(bounce_now, spin_bounce, jnp.where(free, spin_est, spin)), bounce_now
+
+
+def _crossing(values, level, past, k):
+    """The fraction () of the step from k - 1 to k at which values [n] reach level; 1 where
+    past[k] is False (that condition did not stop the search)."""
+    a0, a1 = values[k - 1], values[k]
+    return jnp.where(past[k], jnp.clip((a0 - level) / jnp.where(a0 == a1, 1.0, a0 - a1), 0.0, 1.0), 1.0)
+
+
+def predict_hit(cfg: World, scfg: StrikerConfig, p, v, w, bounced, hit_x, t_now):
+    """Where the ball will be struck, from its position p [3], velocity v [3], spin w [3] and
+    bounced () (on the robot's half already) at t_now (s): the first moment of the predicted
+    flight, after the own-half bounce, that the ball crosses the hitting plane x = hit_x (),
+    falls to hit_min_height above the table top, or is so late that its return must leave now
+    (`return_reserve_s`). Returns (t_hit (), p_hit [3], v_in [3], w_in [3], found ()), linear
+    between predict_dt steps; found is False when no such moment lies ahead within predict_s."""
+    ps, vs, ws, bs = (jnp.concatenate([now[None], later])
+                      for now, later in zip((p, v, w, bounced), predict(cfg, scfg, p, v, w, bounced)))
+    times = t_now + scfg.predict_dt * jnp.arange(ps.shape[0])
+    t_latest, z_min = cfg.episode_s - scfg.return_reserve_s, cfg.table.top_z + scfg.hit_min_height
+    past_x, past_t = ps[:, 0] < hit_x, times > t_latest
+    past_z = (ps[:, 2] < z_min) & (vs[:, 2] < 0.0)
+    cross = bs & (past_x | past_t | past_z)
+    k = jnp.argmax(cross)
+    found = jnp.any(cross) & (k > 0)      # k == 0: the ball is past already (no hit ahead)
+    k = jnp.maximum(k, 1)
+    f = jnp.minimum(jnp.minimum(_crossing(ps[:, 0], hit_x, past_x, k),
+                                _crossing(times, t_latest, past_t, k)),
+                    _crossing(ps[:, 2], z_min, past_z, k))
+    lerp = lambda a: a[k - 1] + f * (a[k] - a[k - 1])  # noqa: E731
+    return t_now + (k - 1 + f) * scfg.predict_dt, lerp(ps), lerp(vs), lerp(ws), found
+
+
+# 2. Choose the strike -----------------------------------------------------------------------
+
+def flight_time(cfg: World, scfg: StrikerConfig, p_hit, t_hit, target, clearance):
+    """The return's flight time () from p_hit [3] at t_hit () to target [2]: the one clearing
+    the net by clearance (), cut to land 0.1 s before the episode ends, but never so short that
+    it clears the net by less than min_clearance."""
+    t_left = cfg.episode_s - t_hit - 0.1
+    t_min = return_time(cfg, p_hit, target, jnp.asarray(scfg.min_clearance))
+    return jnp.maximum(jnp.minimum(return_time(cfg, p_hit, target, clearance), t_left), t_min)
+
+
+def choose_stroke(cfg: World, scfg: StrikerConfig, p_hit, v_in, w_in, t_hit, target, clearance,
+                  theta, first):
+    """The stroke [3] (face normal yaw, pitch (rad), blade speed along it (m/s)) returning the
+    ball that arrives at p_hit [3] at t_hit () with velocity v_in [3] and spin w_in [3] onto
+    target [2], clearing the net by clearance (): newton_iters Newton steps warm-started from
+    the last step's stroke theta [3] (from the drag-free guess where first ()). Newton runs
+    a few steps per control step: the plan changes little from one step to the next."""
+    duration = flight_time(cfg, scfg, p_hit, t_hit, target, clearance)
+    guess = stroke_guess(cfg, scfg, p_hit, v_in, target, duration)
+    theta = solve_stroke(cfg, scfg, jnp.where(first, guess, theta), p_hit, v_in, w_in, target, duration)
+    return jnp.where(jnp.all(jnp.isfinite(theta)), theta, guess)   # a diverged solve restarts
+
+
+# 3. Solve the pose --------------------------------------------------------------------------
+
+def contact_offset(cfg: World) -> float:
+    """How far (m) the blade centre is behind the ball centre, along the face normal, at the hit."""
+    return cfg.ball.radius + cfg.robot.blade_thickness / 2
+
+
+def roll_side(cfg: World, scfg: StrikerConfig, p_hit, found, roll_sign, side_set):
+    """(roll_sign (), side_set ()): the blade roll's side, decided on the first found () hit at
+    p_hit [3]: toward a ball wider than roll_side_y (the blade reaches out to it), else the
+    episode's draw roll_sign; side_set () says it was decided already."""
+    dy = p_hit[1] - cfg.robot.base_y
+    side = jnp.where(jnp.abs(dy) > scfg.roll_side_y, jnp.sign(dy), roll_sign)
+    return jnp.where(found & ~side_set, side, roll_sign), side_set | found
+
+
+def roll_at(cfg: World, scfg: StrikerConfig, roll, sign, p_hit):
+    """The signed blade roll () for a hit at p_hit [3]: the episode's roll size (), raised to
+    what keeps the wrist below wrist_max_z (the extension hangs below the wrist by `hang`)."""
+    r = cfg.robot
+    hang = r.extension + r.blade_half_size[0] + _LINK_OFFSETS[4][0]
+    floor = jnp.arccos(jnp.clip((scfg.wrist_max_z - p_hit[2]) / hang, 0.0, 1.0))
+    return sign * jnp.maximum(roll, floor)
+
+
+def posture(cfg: World, scfg: StrikerConfig, p_hit, roll, face):
+    """The IK's posture preference [8] for a hit at p_hit [3]: gantry behind and partly under
+    the ball, the forearm level and pointing forward, the wrist pitched so that the extension
+    hangs down (j5 near 90 deg), then rolled sideways by j4 = roll () and the face () chosen by j6."""
+    r = cfg.robot
+    gx = jnp.clip(p_hit[0] - scfg.reach_x - r.base_x, r.lower[0], r.upper[0])
+    gy = jnp.clip(scfg.gantry_follow_y * (p_hit[1] - r.base_y), r.lower[1], r.upper[1])
+    j6 = jnp.where(face > 0, 0.0, math.pi)
+    return jnp.stack([gx, gy, 0.0, 0.2, -0.4, roll, 0.5 * math.pi - 0.3, j6])
+
+
+def solve_pose(cfg: World, scfg: StrikerConfig, q_start, p_hit, theta, roll, face, posture_offset,
+               iters: int):
+    """The joints [8] that strike the ball centre p_hit [3] with the stroke theta [3]: the blade
+    centre `contact_offset` behind it along the face normal, the face () +1 / -1 toward it and
+    the blade rolled by roll (); iters IK steps from q_start [8] (None: from the posture,
+    shifted by posture_offset [8]). Returns (q_hit [8], blade [3] the blade centre aimed at,
+    q_pref [8] the posture)."""
+    normal = _direction(theta[0], theta[1])
+    z_t, x_t = blade_frame(normal, roll, face)
+    q_pref = posture(cfg, scfg, p_hit, roll, face) + posture_offset
+    blade = p_hit - contact_offset(cfg) * normal
+    q_start = q_pref if q_start is None else q_start
+    return solve_ik(cfg, q_start, blade, z_t, x_t, q_pref, iters), blade, q_pref
+
+
+def hit_joint_velocity(cfg: World, scfg: StrikerConfig, q_hit, theta):
+    """Joint velocities [8] at q_hit [8] moving the blade at the stroke's speed along its face
+    normal (theta [3]), within hit_speed_frac of the speed limits."""
+    normal = _direction(theta[0], theta[1])
+    return blade_joint_velocity(cfg, q_hit, theta[2] * normal, scfg.hit_speed_frac,
+                                scfg.blade_turn_cost)
+
+
+def next_ik_seed(cfg: World, scfg: StrikerConfig, q_hit, blade, q_pref, q_seed, ik_age, update, lead):
+    """(q_seed [8], ik_age ()): the IK's next warm start, q_hit [8] where the plan updates ().
+    A warm start stuck away from the blade target [3] restarts from the posture q_pref [8], at
+    most every ik_restart_steps (what a restart needs to converge) and not within 0.2 s of the
+    hit (lead (), s): so close, the jump would spoil the swing."""
+    miss = jnp.linalg.norm(forward_kinematics(cfg, q_hit)[0] - blade)
+    stuck = (miss > scfg.ik_restart_err) & (ik_age >= scfg.ik_restart_steps) & update & (lead > 0.2)
+    return jnp.where(update, jnp.where(stuck, q_pref, q_hit), q_seed), jnp.where(stuck, 0, ik_age + 1)
+
+
+# 4. Time the swing --------------------------------------------------------------------------
+
+def swing_phase(cfg: World, scfg: StrikerConfig, t_now, t_hit, strike_s):
+    """The swing's phase () at t_now () for a hit at t_hit (): 0 approach (to the back-swing,
+    arriving at rest), 1 strike (constant acceleration over strike_s () up to the hit velocity,
+    reached hold_s before the hit), 2 hold (the hit velocity through the hit), 3 follow-through."""
+    t_hold = t_hit - scfg.hold_s
+    t_strike = t_hold - strike_s
+    return jnp.where(t_now >= t_hit + scfg.hold_s, 3, jnp.where(
+        t_now >= t_hold, 2, jnp.where(t_now + cfg.control_dt >= t_strike, 1, 0)))
+
+
+def swing_reference(cfg: World, scfg: StrikerConfig, q_ref, v_ref, t_now, t_hit, q_hit, qd_hit,
+                    strike_s):
+    """The joint reference one control step after t_now (): (position, velocity, acceleration),
+    each [8], from q_ref, v_ref [8] in the `swing_phase` of the hit at t_hit (), joints q_hit
+    [8] and velocities qd_hit [8]. Cubic segments (`hermite`) reach the back-swing at rest and
+    the hold at the hit velocity; the follow-through's velocity decays over follow_s."""
+    dt, hold = cfg.control_dt, scfg.hold_s
+    t_next, t_hold = t_now + dt, t_hit - hold
+    q_hold = q_hit - hold * qd_hit
+    lo_m, hi_m = _limits(cfg, 0.01)
+    q_back = jnp.clip(q_hold - 0.5 * strike_s * qd_hit, lo_m, hi_m)   # the strike's start, at rest
+    approach = hermite(q_ref, v_ref, q_back, jnp.zeros(8), t_hold - strike_s - t_now, dt)
+    st = hermite(q_ref, v_ref, q_hold, qd_hit, t_hold - t_now, jnp.minimum(dt, t_hold - t_now))
+    extra = jnp.maximum(t_next - t_hold, 0.0)    # the hold starts within this step
+    strike = (st[0] + st[1] * extra, st[1], jnp.where(extra > 0.0, 0.0, st[2]))
+    held = (q_hit + qd_hit * (t_next - t_hit), qd_hit, jnp.zeros(8))
+    fv = v_ref * jnp.exp(-dt / scfg.follow_s)
+    follow = (q_ref + 0.5 * (v_ref + fv) * dt, fv, (fv - v_ref) / dt)
+    phase = swing_phase(cfg, scfg, t_now, t_hit, strike_s)
+    return tuple(jnp.select([phase == 0, phase == 1, phase == 2], list(x[:3]), x[3])
+                 for x in zip(approach, strike, held, follow))
+
+
+def limit_reference(cfg: World, scfg: StrikerConfig, q_ref, q, v):
+    """The reference step from q_ref [8] to (q, v) [8], kept within approach_speed_frac of the
+    speed limits and inside the joint ranges, with no velocity into a range's end."""
+    lo, hi = _limits(cfg)
+    vlim = scfg.approach_speed_frac * jnp.array(cfg.robot.max_speed)
+    v = jnp.clip(v, -vlim, vlim)
+    q = jnp.clip(q, q_ref - vlim * cfg.control_dt, q_ref + vlim * cfg.control_dt)
+    v = jnp.where(((q <= lo) & (v < 0)) | ((q >= hi) & (v > 0)), 0.0, v)
+    return jnp.clip(q, lo, hi), v
+
+
+def servo_command(cfg: World, q, v, a, offset, u_prev):
+    """The command [8] under which the position servos (scene.py: kv / kp = 2 zeta / omega)
+    follow the reference q, v, a [8] (velocity and acceleration feed-forward), plus the
+    episode's offset [8]; inside the joint ranges and the step from the last command u_prev [8]
+    that `env.command` allows, so that the environment never has to clip it."""
+    r = cfg.robot
+    lo, hi = _limits(cfg)
+    u = q + (2.0 * r.servo_damping / r.servo_omega) * v + a / r.servo_omega**2 + offset
+    u = jnp.clip(u, lo, hi)
+    step_max = jnp.array(r.max_speed) * r.speed_margin * cfg.control_dt
+    return jnp.clip(u, u_prev - step_max, u_prev + step_max)
+
+
+# The policy ---------------------------------------------------------------------------------
 
 def _uniform(key, lo_hi, shape=()):
     return jax.random.uniform(key, shape, minval=lo_hi[0], maxval=lo_hi[1])
@@ -493,194 +702,79 @@ def _uniform(key, lo_hi, shape=()):
 _NOMINAL_HIT = ((-1.52, 0.0, 1.0), (-4.0, 0.0, 0.0))
 
 
+def draw_episode(cfg: World, scfg: StrikerConfig, key) -> StrikerState:
+    """The carry at launch: the episode's draws (`StrikerConfig`), and a plan for a typical hit
+    on the episode's hitting plane, so that the robot sets off toward a sensible pose."""
+    keys = jax.random.split(key, 11)
+    chosen = jnp.zeros(8).at[jax.random.permutation(keys[4], 8)[:scfg.perturb_joints]].set(1.0)
+    signed = lambda k: chosen * jax.random.uniform(k, (8,), minval=-1.0, maxval=1.0)  # noqa: E731
+    coin = lambda k, p: jnp.where(jax.random.bernoulli(k, p), 1.0, -1.0)  # noqa: E731
+    z3, z8, no = jnp.zeros(3), jnp.zeros(8), jnp.array(False)
+    s = StrikerState(
+        target=jnp.stack([_uniform(keys[0], scfg.target_x), _uniform(keys[1], scfg.target_y)]),
+        clearance=_uniform(keys[8], scfg.net_clearance), hit_x=_uniform(keys[7], scfg.hit_x),
+        roll=_uniform(keys[2], scfg.roll_deg) * (math.pi / 180.0),
+        roll_sign=coin(keys[3], scfg.roll_plus_prob), side_set=no,
+        face=coin(keys[10], 1.0 - scfg.back_face_prob), strike_s=_uniform(keys[9], scfg.strike_s),
+        offset=signed(keys[5]) * jnp.array(scfg.perturb),
+        posture_offset=signed(keys[6]) * jnp.array(scfg.posture),
+        # the plan, filled in below, and the tracking, filled in on the first step
+        t_hit=jnp.asarray(0.65), p_hit=z3, theta=z3, q_hit=z8, q_seed=z8, ik_age=jnp.int32(0),
+        qd_hit=z8, q_ref=z8, v_ref=z8, u_prev=z8, v_prev=z3, spin=z3, bounced=no, struck=no)
+    p_nom, v_nom = jnp.array(_NOMINAL_HIT[0]).at[0].set(s.hit_x), jnp.array(_NOMINAL_HIT[1])
+    duration = return_time(cfg, p_nom, s.target, s.clearance)
+    theta = stroke_guess(cfg, scfg, p_nom, v_nom, s.target, duration)
+    roll = roll_at(cfg, scfg, s.roll, s.roll_sign, p_nom)
+    q_hit, _, _ = solve_pose(cfg, scfg, None, p_nom, theta, roll, s.face, s.posture_offset,
+                             scfg.ik_init_iters)
+    return s._replace(p_hit=p_nom, theta=theta, q_hit=q_hit, q_seed=q_hit)
+
+
+def _start_from(s: StrikerState, joints, v, first) -> StrikerState:
+    """The carry where first (): the reference and the last command at the robot's joints [8]
+    (at rest), the last ball velocity v [3] (no velocity change to read the spin from yet)."""
+    at_start = lambda new, old: jnp.where(first, new, old)  # noqa: E731
+    return s._replace(q_ref=at_start(joints, s.q_ref), v_ref=at_start(0.0, s.v_ref),
+                      u_prev=at_start(joints, s.u_prev), v_prev=at_start(v, s.v_prev))
+
+
+def striker_step(cfg: World, scfg: StrikerConfig, s: StrikerState, obs: Obs):
+    """One control step, the four stages in turn: (the carry after it, the command [8])."""
+    first, t_now = obs.t == 0, obs.t.astype(jnp.float32) * cfg.control_dt
+    p, v = observation.ball_pos(obs.frame), obs.ball_vel
+    s = _start_from(s, observation.joints(obs.frame), v, first)
+    # 1. predict the ball; the strike is over once its time has passed or the ball flies back
+    spin, bounce_now = track_ball(cfg, scfg, p, v, s.v_prev, s.spin, first)
+    t_hit, p_hit, v_in, w_in, found = predict_hit(cfg, scfg, p, v, spin, s.bounced, s.hit_x, t_now)
+    struck = s.struck | ((s.bounced | bounce_now) & (v[0] > 0.0)) | (~first & (t_now >= s.t_hit))
+    # 2. choose the strike
+    theta = choose_stroke(cfg, scfg, p_hit, v_in, w_in, t_hit, s.target, s.clearance, s.theta, first)
+    # 3. solve the pose, from the last step's
+    roll_sign, side_set = roll_side(cfg, scfg, p_hit, found, s.roll_sign, s.side_set)
+    roll = roll_at(cfg, scfg, s.roll, roll_sign, p_hit)
+    q_hit, blade, q_pref = solve_pose(cfg, scfg, s.q_seed, p_hit, theta, roll, s.face,
+                                      s.posture_offset, scfg.ik_iters)
+    # the plan follows the prediction in free flight only (mid-bounce the velocity misleads)
+    update = found & ~struck & ~bounce_now & (p[2] > cfg.table.top_z + cfg.ball.radius)
+    q_seed, ik_age = next_ik_seed(cfg, scfg, q_hit, blade, q_pref, s.q_seed, s.ik_age, update,
+                                  t_hit - t_now)
+    plan = dict(t_hit=t_hit, p_hit=p_hit, theta=theta, q_hit=q_hit,
+                qd_hit=hit_joint_velocity(cfg, scfg, q_hit, theta))
+    s = s._replace(**{k: jnp.where(update, x, getattr(s, k)) for k, x in plan.items()})
+    # 4. time the swing
+    q, qd, qdd = swing_reference(cfg, scfg, s.q_ref, s.v_ref, t_now, s.t_hit, s.q_hit, s.qd_hit,
+                                 s.strike_s)
+    q, qd = limit_reference(cfg, scfg, s.q_ref, q, qd)
+    u = servo_command(cfg, q, qd, qdd, s.offset, s.u_prev)
+    return s._replace(q_ref=q, v_ref=qd, u_prev=u, v_prev=v, spin=spin, struck=struck,
+                      bounced=s.bounced | bounce_now, roll_sign=roll_sign, side_set=side_set,
+                      q_seed=q_seed, ik_age=ik_age), u
+
+
 def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backends.Policy:
     """The scripted demonstrator as a Policy for ONE throw (params unused, pass None)."""
-    r, b = cfg.robot, cfg.ball
-    dt = cfg.control_dt
-    vmax = jnp.array(r.max_speed)
-    lo, hi = _limits(cfg)
-    lo_m, hi_m = _limits(cfg, 0.01)
-    contact_offset = b.radius + r.blade_thickness / 2
-    omega = r.servo_omega
-    zeta = getattr(r, "servo_damping", 1.0)   # kv / kp = 2 zeta / omega (scene.py)
-
-    def posture(p_hit, roll, face):
-        """The IK's posture preference for a hit: gantry behind and partly under the ball, the
-        forearm level and pointing forward, the wrist pitched so that the extension hangs down
-        (j5 near 90 deg), then rolled sideways by j4 and the face chosen by j6."""
-        gx = jnp.clip(p_hit[0] - scfg.reach_x - r.base_x, r.lower[0], r.upper[0])
-        gy = jnp.clip(scfg.gantry_follow_y * (p_hit[1] - r.base_y), r.lower[1], r.upper[1])
-        j6 = jnp.where(face > 0, 0.0, math.pi)
-        return jnp.stack([gx, gy, 0.0, 0.2, -0.4, roll, 0.5 * math.pi - 0.3, j6])
-
-    def roll_at(roll, sign, p_hit):
-        """The blade roll for a hit: at least what keeps the wrist low enough (the extension
-        hanging below the wrist by `hang`)."""
-        hang = r.extension + r.blade_half_size[0] + _LINK_OFFSETS[4][0]
-        floor = jnp.arccos(jnp.clip((scfg.wrist_max_z - p_hit[2]) / hang, 0.0, 1.0))
-        return sign * jnp.maximum(roll, floor)
-
-    def flight_time(p_hit, t_hit, target, clearance):
-        """The return's flight time: from its net clearance, but landing within the episode."""
-        t_left = cfg.episode_s - t_hit - 0.1
-        t_min = return_time(cfg, p_hit, target, jnp.asarray(scfg.min_clearance))
-        return jnp.maximum(jnp.minimum(return_time(cfg, p_hit, target, clearance), t_left), t_min)
-
-    # A slow ball is struck where it is at this time, so that its return lands in the episode.
-    t_latest = cfg.episode_s - scfg.return_reserve_s
-
-    def plan_hit(carry: StrikerState, p, v, w, t_now):
-        """(t_hit, p_hit, v_in, w_in, found) from the predicted flight."""
-        ps, vs, ws, bs = predict(cfg, scfg, p, v, w, carry.bounced)
-        ps = jnp.concatenate([p[None], ps])
-        vs = jnp.concatenate([v[None], vs])
-        ws = jnp.concatenate([w[None], ws])
-        bs = jnp.concatenate([carry.bounced[None], bs])
-        times = t_now + scfg.predict_dt * jnp.arange(ps.shape[0])
-        # after the bounce: at the hitting plane, or before the ball falls too low, or late
-        z_min = cfg.table.top_z + scfg.hit_min_height
-        past_x, past_t = ps[:, 0] < carry.hit_x, times > t_latest
-        past_z = (ps[:, 2] < z_min) & (vs[:, 2] < 0.0)
-        cross = bs & (past_x | past_t | past_z)
-        k = jnp.argmax(cross)
-        found = jnp.any(cross) & (k > 0)
-        k = jnp.maximum(k, 1)
-
-        def frac(c, a0, a1, level):
-            return jnp.where(c, jnp.clip((a0 - level) / jnp.where(a0 == a1, 1.0, a0 - a1), 0.0, 1.0), 1.0)
-
-        f = jnp.minimum(jnp.minimum(frac(past_x[k], ps[k - 1, 0], ps[k, 0], carry.hit_x),
-                                    frac(past_t[k], times[k - 1], times[k], t_latest)),
-                        frac(past_z[k], ps[k - 1, 2], ps[k, 2], z_min))
-        lerp = lambda a: a[k - 1] + f * (a[k] - a[k - 1])
-        t_hit = t_now + (k - 1 + f) * scfg.predict_dt
-        return t_hit, lerp(ps), lerp(vs), lerp(ws), found
-
-    def init(params, key):
-        keys = jax.random.split(key, 11)
-        target = jnp.stack([_uniform(keys[0], scfg.target_x), _uniform(keys[1], scfg.target_y)])
-        roll = _uniform(keys[2], scfg.roll_deg) * (math.pi / 180.0)
-        roll_sign = jnp.where(jax.random.bernoulli(keys[3], scfg.roll_plus_prob), 1.0, -1.0)
-        face = jnp.where(jax.random.bernoulli(keys[10], 1.0 - scfg.back_face_prob), 1.0, -1.0)
-        chosen = jnp.zeros(8).at[jax.random.permutation(keys[4], 8)[:scfg.perturb_joints]].set(1.0)
-        signed = lambda k: chosen * jax.random.uniform(k, (8,), minval=-1.0, maxval=1.0)  # noqa: E731
-        offset = signed(keys[5]) * jnp.array(scfg.perturb)
-        pref_off = signed(keys[6]) * jnp.array(scfg.posture)
-        hit_x = _uniform(keys[7], scfg.hit_x)
-        p_nom, v_nom = jnp.array(_NOMINAL_HIT[0]).at[0].set(hit_x), jnp.array(_NOMINAL_HIT[1])
-        clearance = _uniform(keys[8], scfg.net_clearance)
-        duration = return_time(cfg, p_nom, target, clearance)
-        theta = stroke_guess(cfg, scfg, p_nom, v_nom, target, duration)
-        normal = _direction(theta[0], theta[1])
-        roll_nom = roll_at(roll, roll_sign, p_nom)
-        z_t, x_t = blade_frame(normal, roll_nom, face)
-        q_pref = posture(p_nom, roll_nom, face) + pref_off
-        q_hit = solve_ik(cfg, q_pref, p_nom - contact_offset * normal, z_t, x_t, q_pref,
-                         scfg.ik_init_iters)
-        z8 = jnp.zeros(8)
-        return StrikerState(
-            target=target, clearance=clearance, hit_x=hit_x, roll=roll, roll_sign=roll_sign,
-            side_set=jnp.array(False), face=face, strike_s=_uniform(keys[9], scfg.strike_s),
-            offset=offset, posture_offset=pref_off,
-            t_hit=jnp.asarray(0.65), p_hit=p_nom, theta=theta, q_hit=q_hit, q_seed=q_hit,
-            ik_age=jnp.int32(0), qd_hit=z8,
-            q_ref=z8, v_ref=z8, u_prev=z8,
-            v_prev=jnp.zeros(3), spin=jnp.zeros(3), bounced=jnp.array(False), struck=jnp.array(False))
-
-    def apply(params, carry: StrikerState, obs: Obs, key):
-        tab = cfg.table
-        first = obs.t == 0
-        t_now = obs.t.astype(jnp.float32) * dt
-        joints = obs.frame[:8]
-        p, v = obs.frame[8:11], obs.ball_vel
-        # -- initial reference: where the robot is
-        q_ref = jnp.where(first, joints, carry.q_ref)
-        v_ref = jnp.where(first, 0.0, carry.v_ref)
-        u_prev = jnp.where(first, joints, carry.u_prev)
-        v_prev = jnp.where(first, v, carry.v_prev)
-
-        # -- ball tracking: own-half bounce, spin, the returning ball
-        bounce_now = (v_prev[2] < 0.0) & (v[2] > 0.0) & (p[0] < 0.0) & (p[2] < tab.top_z + 0.2)
-        spin_est, resid = estimate_spin(cfg, v_prev, v, dt)
-        _, spin_bounce = bounce(scfg.model.table, v_prev, carry.spin, jnp.array([0.0, 0.0, 1.0]),
-                                jnp.zeros(3), b.radius)
-        free = ~first & ~bounce_now & (jnp.linalg.norm(resid) < 20.0)
-        spin = jnp.where(bounce_now, spin_bounce, jnp.where(free, spin_est, carry.spin))
-        bounced = carry.bounced | bounce_now
-        returning = bounced & (v[0] > 0.0)
-        struck = carry.struck | returning | (~first & (t_now >= carry.t_hit))
-
-        # -- the hit and the stroke
-        t_hit, p_hit, v_in, w_in, found = plan_hit(carry, p, v, spin, t_now)
-        duration = flight_time(p_hit, t_hit, carry.target, carry.clearance)
-        guess = stroke_guess(cfg, scfg, p_hit, v_in, carry.target, duration)
-        theta = solve_stroke(cfg, scfg, jnp.where(first, guess, carry.theta), p_hit, v_in, w_in,
-                             carry.target, duration)
-        theta = jnp.where(jnp.all(jnp.isfinite(theta)), theta, guess)
-        normal = _direction(theta[0], theta[1])
-        # the roll's side: toward a wide ball, decided on the first prediction of a hit
-        side = jnp.where(jnp.abs(p_hit[1] - r.base_y) > scfg.roll_side_y, jnp.sign(p_hit[1] - r.base_y),
-                         carry.roll_sign)
-        roll_sign = jnp.where(found & ~carry.side_set, side, carry.roll_sign)
-        side_set = carry.side_set | found
-        roll = roll_at(carry.roll, roll_sign, p_hit)
-        z_t, x_t = blade_frame(normal, roll, carry.face)
-        q_pref = posture(p_hit, roll, carry.face) + carry.posture_offset
-        blade = p_hit - contact_offset * normal
-        q_hit = solve_ik(cfg, carry.q_seed, blade, z_t, x_t, q_pref, scfg.ik_iters)
-        # a warm start stuck away from the target restarts from the posture (at most every
-        # ik_restart_steps, the iterations a restart needs to converge)
-        # (not close to the hit, where the jump would spoil the swing)
-        qd_hit = blade_joint_velocity(cfg, q_hit, theta[2] * normal, scfg.hit_speed_frac,
-                                      scfg.blade_turn_cost)
-        # no update from a ball in contact with the table (its velocity is mid-bounce)
-        update = found & ~struck & ~bounce_now & (p[2] > tab.top_z + b.radius)
-        stuck = ((jnp.linalg.norm(forward_kinematics(cfg, q_hit)[0] - blade) > scfg.ik_restart_err)
-                 & (carry.ik_age >= scfg.ik_restart_steps) & update & (t_hit - t_now > 0.2))
-        q_seed = jnp.where(update, jnp.where(stuck, q_pref, q_hit), carry.q_seed)
-        ik_age = jnp.where(stuck, 0, carry.ik_age + 1)
-        keep = lambda new, old: jnp.where(update, new, old)
-        t_hit, p_hit, theta = keep(t_hit, carry.t_hit), keep(p_hit, carry.p_hit), keep(theta, carry.theta)
-        q_hit, qd_hit = keep(q_hit, carry.q_hit), keep(qd_hit, carry.qd_hit)
-
-        # -- the reference: approach -> strike -> hold through the hit -> follow-through
-        t_next = t_now + dt
-        hold = scfg.hold_s
-        t_hold = t_hit - hold                        # the hit velocity is reached here
-        t_strike = t_hold - carry.strike_s           # the strike starts from rest here
-        q_hold = q_hit - hold * qd_hit
-        q_back = jnp.clip(q_hold - 0.5 * carry.strike_s * qd_hit, lo_m, hi_m)
-        ap = hermite(q_ref, v_ref, q_back, jnp.zeros(8), t_strike - t_now, dt)
-        st = hermite(q_ref, v_ref, q_hold, qd_hit, t_hold - t_now, jnp.minimum(dt, t_hold - t_now))
-        extra = jnp.maximum(t_next - t_hold, 0.0)    # the hold starts within this step
-        st = (st[0] + st[1] * extra, st[1], jnp.where(extra > 0.0, 0.0, st[2]))
-        ho = (q_hit + qd_hit * (t_next - t_hit), qd_hit, jnp.zeros(8))
-        fv = v_ref * jnp.exp(-dt / scfg.follow_s)
-        fo = (q_ref + 0.5 * (v_ref + fv) * dt, fv, (fv - v_ref) / dt)
-        phase = jnp.where(t_now >= t_hit + hold, 3, jnp.where(t_now >= t_hold, 2,
-                                                               jnp.where(t_next >= t_strike, 1, 0)))
-        pick = lambda i: jnp.select([phase == 0, phase == 1, phase == 2], [ap[i], st[i], ho[i]], fo[i])
-        q_new, v_new, a_new = pick(0), pick(1), pick(2)
-        # speed limits on the reference itself
-        vlim = scfg.approach_speed_frac * vmax
-        v_new = jnp.clip(v_new, -vlim, vlim)
-        q_new = jnp.clip(q_new, q_ref - vlim * dt, q_ref + vlim * dt)
-        v_new = jnp.where(((q_new <= lo) & (v_new < 0)) | ((q_new >= hi) & (v_new > 0)), 0.0, v_new)
-        q_new = jnp.clip(q_new, lo, hi)
-
-        # -- the command: servo feed-forward, the per-episode joint offsets, limits
-        u = q_new + (2.0 * zeta / omega) * v_new + a_new / omega**2 + carry.offset
-        u = jnp.clip(u, lo, hi)
-        step_max = vmax * r.speed_margin * dt
-        u = jnp.clip(u, u_prev - step_max, u_prev + step_max)
-
-        carry = carry._replace(t_hit=t_hit, p_hit=p_hit, theta=theta, q_hit=q_hit, qd_hit=qd_hit,
-                               q_ref=q_new, v_ref=v_new, u_prev=u, v_prev=v, spin=spin,
-                               bounced=bounced, struck=struck, roll_sign=roll_sign,
-                               side_set=side_set, q_seed=q_seed, ik_age=ik_age)
-        return carry, u
-
-    return backends.Policy(init=init, apply=apply)
+    return backends.Policy(init=lambda params, key: draw_episode(cfg, scfg, key),
+                           apply=lambda params, carry, obs, key: striker_step(cfg, scfg, carry, obs))
 
 
 def imitable() -> StrikerConfig:
