@@ -40,16 +40,29 @@ def load_demos(cfg: RunConfig, progress: bool) -> record.Trajectories | None:
     return traj
 
 
+def episode_names(d: str) -> list[str]:
+    """Names of the episode logs in a robot log directory (ttmjx robot run --out)."""
+    if not os.path.isdir(d):
+        raise FileNotFoundError(f"--data {d}: not a directory of robot logs")
+    names = sorted(f[:-len(".meta.json")] for f in os.listdir(d) if f.endswith(".meta.json")
+                   and not f.endswith(".deploy.meta.json"))
+    if not names:
+        raise FileNotFoundError(f"--data {d}: no episode logs (*.meta.json) found")
+    return names
+
+
+def check_sources(cfg: RunConfig) -> None:
+    """The demonstration dataset and robot log directories a run names exist (checked before
+    the run directory is created)."""
+    if cfg.demo_dir and cfg.demos:
+        record.dataset_files(cfg.demo_dir)
+    for d in cfg.data:
+        episode_names(d)
+
+
 def load_logs(paths, horizon: int) -> record.Trajectories | None:
     """Robot logs (deploy episode directories) as one record padded/truncated to `horizon`."""
-    parts = []
-    for d in paths:
-        names = sorted(f[:-len(".meta.json")] for f in os.listdir(d) if f.endswith(".meta.json")
-                       and not f.endswith(".deploy.meta.json"))
-        if not names:
-            raise FileNotFoundError(f"--data {d}: no episode logs (*.meta.json) found")
-        for n in names:
-            parts.append(fit_horizon(record.load(d, n)[0], horizon))
+    parts = [fit_horizon(record.load(d, n)[0], horizon) for d in paths for n in episode_names(d)]
     return record.concat(parts) if parts else None
 
 

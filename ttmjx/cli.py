@@ -362,8 +362,10 @@ def parse_train(argv: list[str]) -> TrainArgs:
 
 def train(a: TrainArgs) -> None:
     from eval.evaluate import training_evaluation
+    from training.pool import check_sources
     from training.trainer import Run
     cfg = a.config
+    check_sources(cfg)
     out = Run(cfg, evaluate=training_evaluation(cfg), progress=not a.json).run(max_iterations=a.max_iterations)
     report(a, out, table(out))
     if out["stopped_by_signal"]:

@@ -104,8 +104,8 @@ def concat(parts: list[Trajectories]) -> Trajectories:
 
 
 def save(directory: str, traj: Trajectories, meta: dict, name: str = "trajectories") -> str:
-    """Write `name`.npz and `name`.meta.json into `directory`; refuses to overwrite."""
-    os.makedirs(directory, exist_ok=True)
+    """Write `name`.npz and `name`.meta.json into `directory`; refuses to overwrite, and writes
+    nothing for a record that does not validate."""
     path = os.path.join(directory, f"{name}.npz")
     meta_path = os.path.join(directory, f"{name}.meta.json")
     if os.path.exists(path) or os.path.exists(meta_path):
@@ -113,6 +113,7 @@ def save(directory: str, traj: Trajectories, meta: dict, name: str = "trajectori
                               f"(choose a new --out or delete it first)")
     traj = to_numpy(traj)
     validate(traj, path)
+    os.makedirs(directory, exist_ok=True)
     tmp = path + ".tmp.npz"
     np.savez(tmp, **traj._asdict())
     os.replace(tmp, path)  # atomic: a crash never leaves a half-written dataset under the name
@@ -121,15 +122,22 @@ def save(directory: str, traj: Trajectories, meta: dict, name: str = "trajectori
     return path
 
 
-def load(directory: str, name: str = "trajectories") -> tuple[Trajectories, dict]:
-    """Load a record written by `save` without pickle; RecordError names the file and problem."""
+def dataset_files(directory: str, name: str = "trajectories") -> tuple[str, str]:
+    """(npz path, metadata path) of a dataset; RecordError if either is missing."""
     path = os.path.join(directory, f"{name}.npz")
     meta_path = os.path.join(directory, f"{name}.meta.json")
     if not os.path.isdir(directory):
-        raise RecordError(f"dataset directory {directory!r} does not exist")
+        kind = "is not a directory" if os.path.exists(directory) else "does not exist"
+        raise RecordError(f"dataset directory {directory!r} {kind}")
     for p in (path, meta_path):
         if not os.path.exists(p):
             raise RecordError(f"{p}: missing (not a ttmjx dataset directory?)")
+    return path, meta_path
+
+
+def load(directory: str, name: str = "trajectories") -> tuple[Trajectories, dict]:
+    """Load a record written by `save` without pickle; RecordError names the file and problem."""
+    path, meta_path = dataset_files(directory, name)
     try:
         with open(meta_path) as f:
             meta = json.load(f)
