@@ -66,7 +66,7 @@ def cases():
         ("robot run --policy {empty} --station fake", "--goals", ["abc", "0.7", "nan,0", "5,5", "{tmp}/g.npy", ""]),
         ("robot run --policy {empty} --station fake --goals five", "--n", ["0", "-1", "abc"]),
         ("robot run --policy {empty} --station fake --goals five", "--stale-ms", ["0", "-5", "nan"]),
-        ("robot run --policy {empty} --station fake --goals five", "--out", ["{file}"]),
+        ("robot run --policy {empty} --station fake --goals five", "--out", ["{file}", "{tmp}"]),
         ("robot run --policy {empty} --station sim --goals five", "--distribution", ["wide"]),
         ("robot bench", "--hidden", ["0"]), ("robot bench", "--layers", ["0"]), ("robot bench", "--members", ["0"]),
         ("robot bench", "--steps", ["0"]), ("robot bench", "--threads", ["0"]), ("robot bench", "--kind", ["gru"]),

@@ -75,6 +75,8 @@ def check_new_path(name: str, path: str | None, want_dir: bool) -> None:
         return
     if want_dir and os.path.isfile(path):
         raise ValueError(f"{flag} {path!r} is a file; expected a new directory")
+    if want_dir and os.path.isdir(path) and os.listdir(path):
+        raise ValueError(f"{flag} {path!r} already holds files; expected a new or empty directory")
     if not want_dir and os.path.isdir(path):
         raise ValueError(f"{flag} {path!r} is a directory; expected a file path")
     parent = os.path.dirname(os.path.abspath(path))
