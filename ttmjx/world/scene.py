@@ -45,6 +45,13 @@ def servo_inertia(cfg: World) -> tuple:
     return tuple(float(full[m.joint(n).dofadr[0], m.joint(n).dofadr[0]]) for n in JOINT_NAMES)
 
 
+# The arm's links 1-5 (ABB IRB 120 dimensions, PHYSICS.md): length (m), the axis they extend
+# along, capsule radius (m), colour; link 6 carries the paddle. Joint axes of links 1-6.
+ARM_LINKS = ((0.29, "z", 0.06, "1 1 1 1"), (0.27, "z", 0.05, "1 1 1 1"), (0.07, "z", 0.045, "1 1 1 1"),
+             (0.302, "x", 0.04, "1 1 1 1"), (0.072, "x", 0.03, ".3 .3 .3 1"))
+ARM_AXES = ("0 0 1", "0 1 0", "0 1 0", "1 0 0", "0 1 0", "1 0 0")
+
+
 def mjcf(cfg: World, fluid: bool = True, inertia: tuple | None = None) -> str:
     """MJCF text of the scene.
 
@@ -76,6 +83,26 @@ def mjcf(cfg: World, fluid: bool = True, inertia: tuple | None = None) -> str:
         actuators.append(
             f'<position name="{name}" joint="{name}" kp="{kp:.6g}" kv="{kv:.6g}" '
             f'ctrlrange="{_v(r.lower[i], r.upper[i])}" ctrllimited="true"/>')
+
+    paddle = f"""
+      <inertial pos="{_v(blade_centre * 0.7, 0, 0)}" mass="{m[6] + r.paddle_mass}"
+                diaginertia="{_v(1e-3, 3e-3, 3e-3)}"/>
+      <geom name="extension" type="capsule" fromto="0 0 0 {r.extension} 0 0" size="0.012" rgba=".2 .2 .2 1"/>
+      <site name="paddle" pos="{_v(blade_centre, 0, 0)}" size="0.01"/>
+      <geom name="paddle" type="box" pos="{_v(blade_centre, 0, 0)}"
+            size="{_v(bh, bw, r.blade_thickness / 2)}" rgba="0.8 0.1 0.1 1"/>"""
+
+    def arm_xml(pos: str, tip: str, k: int = 0) -> str:
+        """Bodies link1..link6 nested from ARM_LINKS; the last holds `tip` (the paddle)."""
+        axis = ARM_AXES[k]
+        head = f'<body name="link{k + 1}" pos="{pos}" gravcomp="1">{joint_xml(k + 2, "hinge", axis)}'
+        if k == len(ARM_LINKS):
+            return f"{head}{tip}</body>"
+        length, along, radius, rgba = ARM_LINKS[k]
+        end = _v(0, 0, length) if along == "z" else _v(length, 0, 0)
+        return (f'{head}{_link_inertial(m[k + 1], length, along)}'
+                f'<geom type="capsule" fromto="0 0 0 {end}" size="{radius}" rgba="{rgba}"/>'
+                f'{arm_xml(end, tip, k + 1)}</body>')
 
     return f"""
 <mujoco model="ttmjx">
@@ -112,41 +139,7 @@ def mjcf(cfg: World, fluid: bool = True, inertia: tuple | None = None) -> str:
         {joint_xml(1, "slide", "0 1 0")}
         <inertial pos="0 0 0.3" mass="{r.gantry_mass + m[0]}" diaginertia="1 1 1"/>
         <geom type="box" pos="0 0 {r.base_z / 2}" size="0.1 0.1 {r.base_z / 2}" rgba=".5 .5 .5 1"/>
-        <body name="link1" pos="0 0 {r.base_z}" gravcomp="1">
-          {joint_xml(2, "hinge", "0 0 1")}
-          {_link_inertial(m[1], 0.29, "z")}
-          <geom type="capsule" fromto="0 0 0 0 0 0.29" size="0.06" rgba="1 1 1 1"/>
-          <body name="link2" pos="0 0 0.29" gravcomp="1">
-            {joint_xml(3, "hinge", "0 1 0")}
-            {_link_inertial(m[2], 0.27, "z")}
-            <geom type="capsule" fromto="0 0 0 0 0 0.27" size="0.05" rgba="1 1 1 1"/>
-            <body name="link3" pos="0 0 0.27" gravcomp="1">
-              {joint_xml(4, "hinge", "0 1 0")}
-              {_link_inertial(m[3], 0.07, "z")}
-              <geom type="capsule" fromto="0 0 0 0 0 0.07" size="0.045" rgba="1 1 1 1"/>
-              <body name="link4" pos="0 0 0.07" gravcomp="1">
-                {joint_xml(5, "hinge", "1 0 0")}
-                {_link_inertial(m[4], 0.302, "x")}
-                <geom type="capsule" fromto="0 0 0 0.302 0 0" size="0.04" rgba="1 1 1 1"/>
-                <body name="link5" pos="0.302 0 0" gravcomp="1">
-                  {joint_xml(6, "hinge", "0 1 0")}
-                  {_link_inertial(m[5], 0.072, "x")}
-                  <geom type="capsule" fromto="0 0 0 0.072 0 0" size="0.03" rgba=".3 .3 .3 1"/>
-                  <body name="link6" pos="0.072 0 0" gravcomp="1">
-                    {joint_xml(7, "hinge", "1 0 0")}
-                    <inertial pos="{_v(blade_centre * 0.7, 0, 0)}" mass="{m[6] + r.paddle_mass}"
-                              diaginertia="{_v(1e-3, 3e-3, 3e-3)}"/>
-                    <geom name="extension" type="capsule" fromto="0 0 0 {r.extension} 0 0" size="0.012"
-                          rgba=".2 .2 .2 1"/>
-                    <site name="paddle" pos="{_v(blade_centre, 0, 0)}" size="0.01"/>
-                    <geom name="paddle" type="box" pos="{_v(blade_centre, 0, 0)}"
-                          size="{_v(bh, bw, r.blade_thickness / 2)}" rgba="0.8 0.1 0.1 1"/>
-                  </body>
-                </body>
-              </body>
-            </body>
-          </body>
-        </body>
+        {arm_xml(f"0 0 {r.base_z}", paddle)}
       </body>
     </body>
   </worldbody>
