@@ -23,7 +23,7 @@ MJX_EPISODE_BYTES = 64 * 1024
 
 def device_bytes() -> int:
     """Memory of the default device: the accelerator's limit, or this machine's RAM on a CPU."""
-    stats = jax.devices()[0].memory_stats() or {}
+    stats = jax.local_devices()[0].memory_stats() or {}
     if "bytes_limit" in stats:
         return int(stats["bytes_limit"])
     return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))

@@ -2,7 +2,8 @@
 
 Demonstrations and kept practice episodes go in through `append` (jit-compatible, no host
 round trip); every member samples its windows from this one cache. Beyond `capacity` the oldest
-episodes are overwritten (FIFO).
+episodes are overwritten (FIFO). On several devices every device holds a whole copy, so sampling
+never reads another device (training.mesh; docs/SCALING.md says why not split along capacity).
 """
 from __future__ import annotations
 

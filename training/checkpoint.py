@@ -4,6 +4,9 @@ checkpoint (`load_checkpoint`), used by resume, evaluation and export.
 
 Restore is exact (bit-for-bit, same dtypes). The structure to restore into is built from the
 configuration saved WITH the checkpoint, never guessed from array shapes. Nothing is pickled.
+A checkpoint holds whole arrays, not the devices that saved them: `load_checkpoint` restores
+onto one device (the template's), and a run places the state on its own mesh (`sharding`), so
+a run saved on 4 devices resumes on 1 and the other way round.
 """
 from __future__ import annotations
 
@@ -19,8 +22,9 @@ import orbax.checkpoint as ocp
 from models.normalizer import identity_normalizer
 from models.policy import PolicyParams
 from training.cache import Cache, empty_cache
+from training.mesh import Layout, barrier, is_primary
 from training.runconfig import RunConfig, from_json
-from training.update import TrainState, acting_params, init_train_state
+from training.update import TrainState, acting_params, init_train_state, state_sharding
 from ttmjx.world import files
 
 CHECKSUMS = "ttmjx_checksums.json"   # {file: sha256} of a step's files, written after Orbax commits it
@@ -53,6 +57,13 @@ class Loaded(NamedTuple):
     def params(self) -> PolicyParams:
         """The acting (moving-average) parameters; leaves [N, ...] over ensemble members."""
         return acting_params(self.ck.state)
+
+
+def sharding(layout: Layout) -> Checkpointed:
+    """Where a run's state lives on `layout` (a pytree prefix): the train state split over
+    members; the cache, key and counters replicated (training.mesh says why)."""
+    rep = layout.replicated
+    return Checkpointed(state_sharding(layout), rep, rep, rep)
 
 
 def zero_counters(trajectories: int = 0) -> Counters:
@@ -92,7 +103,8 @@ def save(directory: str, step: int, tree, config: dict, keep: int = 3) -> None:
         mngr.save(int(step), args=ocp.args.Composite(state=ocp.args.StandardSave(_savable(tree)),
                                                       config=ocp.args.JsonSave({**config, "checkpoint_format": FORMAT})))
     step_dir = os.path.join(os.path.abspath(directory), str(int(step)))
-    files.write_json(os.path.join(step_dir, CHECKSUMS), files.tree_checksums(step_dir, exclude=(CHECKSUMS,)))
+    if is_primary():   # Orbax wrote the step from every process; one of them seals it
+        files.write_json(os.path.join(step_dir, CHECKSUMS), files.tree_checksums(step_dir, exclude=(CHECKSUMS,)))
 
 
 def discard_after(directory: str, step: int) -> list[int]:
@@ -100,8 +112,9 @@ def discard_after(directory: str, step: int) -> list[int]:
     them under the same numbers); returns their steps."""
     import shutil
     gone = [s for s in steps(directory) if s > step]
-    for s in gone:
+    for s in gone if is_primary() else ():
         shutil.rmtree(os.path.join(os.path.abspath(directory), str(s)))
+    barrier("ttmjx_discard_after")   # no process reads the directory before they are gone
     return gone
 
 

@@ -4,6 +4,11 @@ relabel every hit with where the ball landed, append to the one shared cache, tr
 `practice_round` is the round, written once. On MJX all of it is pure and `Practice` compiles it
 as ONE jit-compiled function; on a CPU the rollouts step MuJoCo C on the host, so the same
 round runs eagerly around the compiled pieces (goals, append, the S updates).
+
+On a mesh of devices (training.mesh) the MJX round plays its M throws sharded over every device,
+each device the throws of the members it holds; the new episodes are gathered into the
+replicated cache, and the updates run as in training.update. On MuJoCo C the physics runs on
+the host and only the compiled pieces are sharded.
 """
 from __future__ import annotations
 
@@ -16,7 +21,8 @@ from models.config import PolicyConfig
 from models.policy import make_policy, with_action_noise
 from training.cache import Cache, add_episodes
 from training.config import TrainConfig
-from training.update import TrainState, acting_params, make_train_loop
+from training.mesh import Layout, single_device
+from training.update import TrainState, acting_params, make_train_loop, state_sharding
 from ttmjx.world import thrower
 from ttmjx.world.backends import Backend
 from ttmjx.world.config import World
@@ -38,6 +44,7 @@ class RoundParts(NamedTuple):
     rollout: Callable    # (params, key, throws [M], goals [M, 2]) -> Trajectories
     append: Callable     # (cache, traj) -> cache
     train: Callable      # (state, cache, key) -> (state, loss [N])
+    place: Callable      # tree [M, ...] -> the same, laid out over the devices that play it
 
 
 def practice_policy(pcfg: PolicyConfig, tcfg: TrainConfig):
@@ -62,7 +69,7 @@ def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, thro
     """One round of Algorithm 1 -> (state, cache, loss [N], PracticeStats): goals, rollouts of the
     acting (moving-average) policies on `throws` [M], relabel + append, S updates."""
     k_goal, k_roll, k_train = round_keys(key)
-    traj = parts.rollout(acting_params(state), k_roll, throws, parts.goals(k_goal))
+    traj = parts.rollout(acting_params(state), k_roll, parts.place(throws), parts.place(parts.goals(k_goal)))
     new = parts.append(cache, traj)
     stats = practice_stats(jax.tree.map(jnp.asarray, traj), cache.count, new.count)
     state, loss = parts.train(state, new, k_train)
@@ -81,30 +88,42 @@ class Practice:
     built once here (the jit boundaries of training) and reused every round."""
 
     def __init__(self, world: World, pcfg: PolicyConfig, tcfg: TrainConfig, backend: Backend,
-                 episodes: int, train_steps: int):
+                 episodes: int, train_steps: int, layout: Layout | None = None):
         if episodes % tcfg.members:
             raise ValueError(f"episodes_per_ssp={episodes} must be a multiple of members={tcfg.members} "
                              f"(every member practises an equal share)")
         self.world, self.tcfg, self.backend, self.episodes = world, tcfg, backend, episodes
-        self.train_loop = make_train_loop(pcfg, tcfg, train_steps) if train_steps > 0 else None
+        self.layout = layout or single_device()
+        self.train_loop = make_train_loop(pcfg, tcfg, train_steps, self.layout) if train_steps > 0 else None
         self._sample_throws = jax.jit(lambda k: thrower.sample_throws(k, world, THROW_BLOCK * episodes))
         self._bank = (None, None)
         policy = practice_policy(pcfg, tcfg)
         pure = self._pure_parts(backend.rollout_fn(policy, members=tcfg.members)) if backend.name == "mjx" else None
-        self._round = jax.jit(lambda *a: practice_round(pure, *a)) if pure else self._host_round(policy)
+        self._round = self._compiled_round(pure) if pure else self._host_round(policy)
 
     def _pure_parts(self, rollout) -> RoundParts:
         world, m, margin = self.world, self.episodes, self.tcfg.goal_margin
         return RoundParts(goals=lambda k: uniform_goals(k, m, world.table), rollout=rollout,
-                          append=lambda c, t: add_episodes(c, t, world.table, margin), train=self.train)
+                          append=lambda c, t: add_episodes(c, t, world.table, margin), train=self.train,
+                          place=self.layout.constrain_throws)
+
+    def _compiled_round(self, pure: RoundParts):
+        """MJX: the whole round in one jit. The throws, goals and episodes are split over the
+        devices (`place`); the state stays split over members, the cache and the stats replicated."""
+        lay = self.layout
+        parts = pure._replace(rollout=lambda *a: lay.constrain_throws(pure.rollout(*a)))
+        out = (state_sharding(lay), lay.replicated, lay.replicated, lay.replicated)
+        return jax.jit(lambda *a: practice_round(parts, *a), out_shardings=out)
 
     def _host_round(self, policy):
-        """MuJoCo C: the round runs on the host around compiled goals, append and updates."""
-        backend, members = self.backend, self.tcfg.members
+        """MuJoCo C: the round runs on the host around compiled goals, append and updates; the
+        host physics plays every throw, with the whole parameters on this process's device."""
+        backend, members, lay = self.backend, self.tcfg.members, self.layout
         pure = self._pure_parts(None)
         parts = pure._replace(
-            goals=jax.jit(pure.goals), append=jax.jit(pure.append),
-            rollout=lambda p, k, th, g: backend.rollout(policy, p, k, th, g, members=members))
+            goals=jax.jit(pure.goals), append=jax.jit(pure.append, out_shardings=lay.replicated),
+            rollout=lambda p, k, th, g: backend.rollout(policy, lay.local(p), k, th, g, members=members),
+            place=lambda tree: tree)
         return lambda *a: practice_round(parts, *a)
 
     def round_throws(self, base_key, it: int) -> thrower.Throw:

@@ -47,6 +47,8 @@ class RunConfig:
     """Seed of everything random in the run (a non-zero seed without --run-dir appends -seedN)."""
     backend: Literal["auto", "c", "mjx"] = "auto"
     """auto: MJX on an accelerator, MuJoCo C on a CPU."""
+    devices: int | None = None
+    """Devices to train on (None: all); members and practice throws are split over them (docs/SCALING.md)."""
     run_dir: str = "runs/default"
     """Where config.json, metrics.jsonl, the curves and checkpoints/ go; the same command resumes it."""
     keep_checkpoints: int = 3
@@ -62,6 +64,8 @@ class RunConfig:
         for name in ("demos", "pretrain_steps", "total_trajectories"):
             if getattr(self, name) < 0:
                 raise ValueError(f"RunConfig.{name}={getattr(self, name)}, expected >= 0")
+        if self.devices is not None and self.devices < 1:
+            raise ValueError(f"RunConfig.devices={self.devices}, expected >= 1 or None (all)")
         if self.demos == 0 and not self.practice:
             raise ValueError("demos=0 with practice off has nothing to learn from")
         if self.world.frame_stack != self.policy.frame_stack and self.policy.kind == "framestack":

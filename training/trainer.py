@@ -4,6 +4,8 @@ self-supervised practice rounds -> evaluation, with checkpoints that resume exac
 `Run` composes the parts, each in its own module: the starting data (training.pool), the
 updates and practice rounds (training.practice), the evaluation it is GIVEN (a function, so
 training never imports eval), the log (training.runlog) and the checkpoints (training.checkpoint).
+The run's devices (training.mesh, cfg.devices) are laid out before anything is compiled; the
+state is placed on them when it is made or restored, whatever the devices that saved it.
 
 Every random draw of iteration i comes from fold_in(seed key, i), and the state is saved at
 iteration boundaries, so a run killed at any point and resumed ends with the same parameters,
@@ -20,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from training import budget, checkpoint, pool, runlog
+from training import budget, checkpoint, mesh, pool, runlog
 from training.checkpoint import Checkpointed, Counters
 from training.practice import Practice
 from training.runconfig import RunConfig, to_json
@@ -33,7 +35,7 @@ Evaluate = Callable[..., dict]
 
 # Fields that may differ when resuming (they do not change the computation).
 RESUME_MAY_CHANGE = {"run_dir", "data", "keep_checkpoints", "total_trajectories", "checkpoint_every",
-                     "absorbed_data", "checkpoint_format"}
+                     "absorbed_data", "checkpoint_format", "devices"}
 
 
 # -- schedule -------------------------------------------------------------------------------
@@ -95,12 +97,17 @@ class Run:
 
     def __init__(self, cfg: RunConfig, evaluate: Evaluate | None = None, progress: bool = True, log=print):
         self.cfg, self.evaluate, self.progress, self.log = cfg, evaluate, progress, log
-        budget.check_fits(cfg)   # refuse what cannot fit before anything is compiled
+        mesh.initialize_distributed()       # several processes: before JAX's first computation
+        self.layout = mesh.make_layout(cfg)  # refuse what cannot be placed or fit before anything is compiled
+        budget.check_fits(cfg)
         self.backend = Backend(cfg.world, resolve_backend(cfg.backend))
         self.practice = Practice(cfg.world, cfg.policy, cfg.train, self.backend,
-                                 cfg.episodes_per_ssp, cfg.steps_between_ssp)
+                                 cfg.episodes_per_ssp, cfg.steps_between_ssp, self.layout)
         self.ckpt_dir = os.path.join(cfg.run_dir, "checkpoints")
-        self.metrics = runlog.MetricsLog(cfg.run_dir)
+        # With several processes, process 0 writes the run's log; the others keep their own
+        # beside it (the same rows: one writer per file).
+        self.log_dir = cfg.run_dir if mesh.is_primary() else os.path.join(cfg.run_dir, f"process{jax.process_index()}")
+        self.metrics = runlog.MetricsLog(self.log_dir)
         self._stop = 0                   # the signal that asked the run to stop (0: none)
         self.saved_at = -1               # iteration of the newest checkpoint written or restored
         self._absorbed: list[str] = []   # robot log directories already in the cache (absolute)
@@ -114,7 +121,11 @@ class Run:
         self._absorbed = [os.path.abspath(d) for d in cfg.data]
         cache, norm, seen = pool.starting_pool(cfg, pool.load_demos(cfg, self.progress), logs, self.backend, key)
         state = init_train_state(jax.random.fold_in(key, 1), cfg.policy, cfg.train, norm)
-        return Checkpointed(state, cache, key, checkpoint.zero_counters(seen))
+        return self.place(Checkpointed(state, cache, key, checkpoint.zero_counters(seen)))
+
+    def place(self, ck: Checkpointed) -> Checkpointed:
+        """`ck` on this run's devices (checkpoint.sharding)."""
+        return self.layout.put(ck, checkpoint.sharding(self.layout))
 
     def absorb_logs(self, ck: Checkpointed) -> Checkpointed:
         """Robot practice closes the loop: relabel the logs in cfg.data, append them to the
@@ -132,7 +143,7 @@ class Run:
         self.log(f"[ttmjx] added {int(cache.count - ck.cache.count)} of {logs.size} logged episodes "
                  f"from {', '.join(new)} to the cache")
         self._absorbed += [os.path.abspath(d) for d in new]
-        return ck._replace(cache=cache, counters=ck.counters._replace(
+        return ck._replace(cache=self.layout.put(cache, self.layout.replicated), counters=ck.counters._replace(
             trajectories=ck.counters.trajectories + logs.size))
 
     # -- checkpoints -------------------------------------------------------------------------
@@ -163,15 +174,16 @@ class Run:
                              f"resume with the same config or choose a new run_dir")
         self._absorbed = list(loaded.meta.get("absorbed_data", []))
         self.saved_at = loaded.step
-        return loaded.ck
+        return self.place(loaded.ck)   # restored on one device, whatever the devices that saved it
 
     def start(self) -> Checkpointed:
         """A fresh run (config, initial state, empty log) or the resumed one."""
         cfg = self.cfg
-        os.makedirs(cfg.run_dir, exist_ok=True)
+        os.makedirs(self.log_dir, exist_ok=True)
         ck = self.restore()
         if ck is None:
-            write_config(cfg)
+            if mesh.is_primary():
+                write_config(cfg)
             ck = self.initial()
             self.save(ck)
             self.metrics.start()
@@ -185,21 +197,24 @@ class Run:
         """Iteration `it` (pretraining chunk, practice round or LFP round) -> (state, metrics row)."""
         cfg, t0 = self.cfg, _now()
         practise = phase(cfg, it) == "practice"
-        base = jnp.asarray(ck.key)
+        # The keys derive from a host copy: uncommitted to any device, they go wherever the
+        # computation that uses them runs (the mesh, or one device for the host physics).
+        base = np.asarray(ck.key)
         throws = self.practice.round_throws(base, it) if practise else None
         state, cache, loss, stats = self.practice.iteration(ck.state, ck.cache, jax.random.fold_in(base, it), throws)
         check_finite(state, loss, it, self.saved_at)
         new_traj = cfg.episodes_per_ssp if practise else 0
-        ck = Checkpointed(state, cache, ck.key, Counters(
-            jnp.int32(it + 1), ck.counters.trajectories + new_traj,
-            ck.counters.updates + (cfg.steps_between_ssp if self.practice.train_loop else 0)))
+        counters = Counters(np.int32(it + 1), np.int32(int(ck.counters.trajectories) + new_traj),
+                            np.int32(int(ck.counters.updates) + (cfg.steps_between_ssp if self.practice.train_loop else 0)))
+        ck = Checkpointed(state, cache, ck.key, self.layout.put(counters, self.layout.replicated))
         row = {"iteration": it, "phase": phase(cfg, it), "trajectories": int(ck.counters.trajectories),
                "updates": int(ck.counters.updates), "cache_size": int(cache.size), "loss": float(np.mean(loss)),
                "seconds": _now() - t0}
         if stats is not None:
             row.update({f"practice_{k}": float(v) for k, v in stats._asdict().items()})
         if self.evaluate is not None and is_eval_iteration(cfg, it):
-            metrics = self.evaluate(acting_params(state), self.backend, jax.random.fold_in(base, 10**6 + it))
+            metrics = self.evaluate(self.layout.local(acting_params(state)), self.backend,
+                                    jax.random.fold_in(base, 10**6 + it))
             row.update({f"eval_{k}": v for k, v in metrics.items()})
         return ck, row
 
@@ -232,7 +247,7 @@ class Run:
             bar.close()
             self._restore_signals()
             self.metrics.close()
-        runlog.plot_curves(self.metrics.path, os.path.join(cfg.run_dir, "learning_curve.png"))
+        runlog.plot_curves(self.metrics.path, os.path.join(self.log_dir, "learning_curve.png"))
         return {"run_dir": cfg.run_dir, "iteration": int(ck.counters.iteration),
                 "trajectories": int(ck.counters.trajectories), "finished": int(ck.counters.iteration) >= n_tot,
                 "stopped_by_signal": self._stop,

@@ -1,7 +1,9 @@
 """Optimizer updates of a whole ensemble in one jit-compiled, vmapped step.
 
 Every member samples its own windows from the one shared cache (its own key) and takes its
-own Adam step; no Python loop over members.
+own Adam step; no Python loop over members. On a mesh (training.mesh) the members are split
+over the `member` axis and each member's windows over `batch`; the cache is replicated, so
+sampling reads only the device's own copy.
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ from models.policy import PolicyParams, ensemble_size, init_ensemble
 from training.cache import Cache
 from training.config import TrainConfig
 from training.loss import policy_loss
+from training.mesh import MEMBER, Layout, single_device
 from training.sampler import sample_subsequences
 
 
@@ -56,32 +59,54 @@ def init_train_state(key, pcfg: PolicyConfig, tcfg: TrainConfig, norm: Normalize
     return TrainState(params, jax.vmap(optimizer(tcfg).init)(params.net), jnp.int32(0), params)
 
 
-def member_update(pcfg: PolicyConfig, tcfg: TrainConfig, params: PolicyParams, opt_state, cache: Cache, key):
-    """One member: sample a batch, one optimizer step -> (params, opt_state, loss [])."""
-    batch = sample_subsequences(key, cache, tcfg.window, tcfg.batch_size,
-                                pcfg.input_frames, pcfg.obs_size, tcfg.demo_fraction)
+def state_sharding(layout: Layout) -> TrainState:
+    """Where a TrainState lives (a pytree prefix): the [N, ...] leaves split over members, the
+    step replicated."""
+    return TrainState(layout.members, layout.members, layout.replicated, layout.members)
+
+
+def member_update(pcfg: PolicyConfig, tcfg: TrainConfig, params: PolicyParams, opt_state, cache: Cache, key,
+                  place=lambda batch: batch):
+    """One member: sample a batch, one optimizer step -> (params, opt_state, loss []).
+    `place` puts the sampled windows [B, ...] where they are computed on (Layout.constrain_batch)."""
+    batch = place(sample_subsequences(key, cache, tcfg.window, tcfg.batch_size,
+                                      pcfg.input_frames, pcfg.obs_size, tcfg.demo_fraction))
     loss, grads = jax.value_and_grad(
         lambda net: policy_loss(pcfg, params._replace(net=net), batch))(params.net)
     updates, opt_state = optimizer(tcfg).update(grads, opt_state, params.net)
     return params._replace(net=optax.apply_updates(params.net, updates)), opt_state, loss
 
 
-def _ensemble_update(pcfg, tcfg, state: TrainState, cache: Cache, key):
+def _ensemble_update(pcfg, tcfg, layout: Layout, state: TrainState, cache: Cache, key):
     keys = jax.random.split(key, ensemble_size(state.params))
-    update = jax.vmap(lambda p, o, k: member_update(pcfg, tcfg, p, o, cache, k))
+    # spmd_axis_name: the vmapped member axis is the mesh's `member` axis, so the per-member
+    # constraint on the windows' [B] axis becomes [N over member, B over batch].
+    update = jax.vmap(lambda p, o, k: member_update(pcfg, tcfg, p, o, cache, k, layout.constrain_batch),
+                      spmd_axis_name=MEMBER)
     params, opt_state, loss = update(state.params, state.opt_state, keys)
     return TrainState(params, opt_state, state.step + 1, updated_ema(tcfg.ema_decay, state.ema, params)), loss
 
 
-def make_train_step(pcfg: PolicyConfig, tcfg: TrainConfig):
-    """jit-compiled `train_step(state, cache, key) -> (state, loss [N])`: one update per member."""
-    return jax.jit(lambda state, cache, key: _ensemble_update(pcfg, tcfg, state, cache, key))
+def _compiled(layout: Layout, fn):
+    """jit of fn(state, cache, key) -> (state, loss), the state kept on its devices and the loss
+    (a few numbers) replicated so every process can read it."""
+    return jax.jit(fn, out_shardings=(state_sharding(layout), layout.replicated))
 
 
-def make_train_loop(pcfg: PolicyConfig, tcfg: TrainConfig, num_steps: int):
+def make_train_step(pcfg: PolicyConfig, tcfg: TrainConfig, layout: Layout | None = None):
+    """jit-compiled `train_step(state, cache, key) -> (state, loss [N])`: one update per member,
+    on `layout`'s devices (default: one device)."""
+    layout = layout or single_device()
+    return _compiled(layout, lambda state, cache, key: _ensemble_update(pcfg, tcfg, layout, state, cache, key))
+
+
+def make_train_loop(pcfg: PolicyConfig, tcfg: TrainConfig, num_steps: int, layout: Layout | None = None):
     """jit-compiled `train_loop(state, cache, key) -> (state, loss [num_steps, N])`: `num_steps`
-    updates in one call (a scan), for the updates between two practice rounds."""
+    updates in one call (a scan), for the updates between two practice rounds; on `layout`'s
+    devices (default: one device)."""
+    layout = layout or single_device()
+
     def loop(state, cache, key):
-        body = lambda s, k: _ensemble_update(pcfg, tcfg, s, cache, k)  # noqa: E731
+        body = lambda s, k: _ensemble_update(pcfg, tcfg, layout, s, cache, k)  # noqa: E731
         return jax.lax.scan(body, state, jax.random.split(key, num_steps))
-    return jax.jit(loop)
+    return _compiled(layout, loop)

@@ -533,6 +533,8 @@ def enable_compile_cache():
 
 
 def main(argv: list[str] | None = None) -> None:
+    from training.mesh import initialize_distributed
+    initialize_distributed()   # several processes: before JAX's first computation (presets probe devices)
     name, rest = command_of(sys.argv[1:] if argv is None else list(argv))
     cmd = COMMANDS[name]
     try:
