@@ -88,13 +88,15 @@ def evaluate_checkpoint(path: str, goals: str = "200", per_goal: int = 40, distr
 
 
 def _goal_count(goals: str) -> int | None:
-    """'five' -> None; a positive number of uniform goals -> that number."""
+    """'five' -> None; a positive number of uniform goals (at most what fits in memory) -> that number."""
+    from training.budget import episodes_that_fit
     if goals == "five":
         return None
     try:
         n = int(goals)
     except ValueError:
         raise ValueError(f"--goals must be a number of uniform goals or 'five', got {goals!r}") from None
-    if n < 1:
-        raise ValueError(f"--goals must be >= 1, got {n}")
+    most = episodes_that_fit(World())
+    if not 1 <= n <= most:
+        raise ValueError(f"--goals {n}: expected between 1 and {most} (what fits in this device's memory)")
     return n

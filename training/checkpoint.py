@@ -52,6 +52,7 @@ class Loaded(NamedTuple):
     meta: dict                # the saved config dict, with run bookkeeping (absorbed_data)
     step: int
     directory: str            # the checkpoints directory
+    skipped: tuple = ()       # newer steps skipped because their files failed their checksums
 
     @property
     def params(self) -> PolicyParams:
@@ -107,15 +108,13 @@ def save(directory: str, step: int, tree, config: dict, keep: int = 3) -> None:
         files.write_json(os.path.join(step_dir, CHECKSUMS), files.tree_checksums(step_dir, exclude=(CHECKSUMS,)))
 
 
-def discard_after(directory: str, step: int) -> list[int]:
-    """Delete the checkpoints newer than `step` (damaged ones a resume skipped: the run redoes
-    them under the same numbers); returns their steps."""
+def discard(directory: str, damaged) -> None:
+    """Delete the damaged checkpoints a resume skipped (the run redoes them under the same
+    numbers)."""
     import shutil
-    gone = [s for s in steps(directory) if s > step]
-    for s in gone if is_primary() else ():
+    for s in damaged if is_primary() else ():
         shutil.rmtree(os.path.join(os.path.abspath(directory), str(s)))
-    barrier("ttmjx_discard_after")   # no process reads the directory before they are gone
-    return gone
+    barrier("ttmjx_discard")   # no process reads the directory before they are gone
 
 
 def damage(directory: str, step: int) -> str | None:
@@ -184,13 +183,16 @@ def checkpoints_dir(path: str) -> str:
 DAMAGED = " is damaged: "
 
 
-class NoIntactCheckpoint(ValueError):
-    """Every checkpoint failed to load; `all_unfinished`: all of them failed their checksums
-    (interrupted or corrupted saves), none for a configuration this version cannot read."""
+class DamagedCheckpoint(ValueError):
+    """A checkpoint whose files fail their checksums, or whose save did not finish."""
 
-    def __init__(self, msg: str, all_unfinished: bool):
+
+class NoIntactCheckpoint(ValueError):
+    """Every checkpoint failed its checksums (interrupted or corrupted saves); `skipped`: their steps."""
+
+    def __init__(self, msg: str, skipped: tuple):
         super().__init__(msg)
-        self.all_unfinished = all_unfinished
+        self.skipped = skipped
 
 
 def _warn(msg: str) -> None:
@@ -210,30 +212,33 @@ def load_checkpoint(path: str, step: int | None = None, warn: Callable[[str], No
     saved = steps(ckpt)
     if not saved:
         raise FileNotFoundError(f"no checkpoint in {ckpt!r}")
-    problems = []
+    problems, skipped = [], []
     for s in reversed(saved):
         try:
             loaded = _load_step(ckpt, s)
-        except ValueError as e:
+        except DamagedCheckpoint as e:      # any other failure stops: it is not the files' fault
             problems.append(str(e))
+            skipped.append(s)
             continue
         if problems:
             warn(f"[ttmjx] skipped damaged checkpoint(s): {'; '.join(problems)}; using checkpoint {s}")
-        return loaded
-    raise NoIntactCheckpoint(f"no intact checkpoint in {ckpt}: {'; '.join(problems)}",
-                             all_unfinished=all(DAMAGED in p for p in problems))
+        return loaded._replace(skipped=tuple(skipped))
+    raise NoIntactCheckpoint(f"no intact checkpoint in {ckpt}: {'; '.join(problems)}", skipped=tuple(skipped))
 
 
 def _load_step(ckpt: str, step: int) -> Loaded:
     where = os.path.join(ckpt, str(step))
+    has_sums = os.path.exists(os.path.join(where, CHECKSUMS))
+    if has_sums and damage(ckpt, step):
+        raise DamagedCheckpoint(f"checkpoint {step}{DAMAGED}{damage(ckpt, step)}")
     try:
         saved = restore_config(ckpt, step)
     except Exception as e:  # orbax raises several types for a missing or corrupt JSON item
         raise ValueError(f"{where}: cannot read the saved configuration ({type(e).__name__}: {e})") from e
-    # Checkpoints written before checksums existed (no checkpoint_format) are read unchecked.
-    bad = damage(ckpt, step) if saved.get("checkpoint_format", 0) >= 1 else None
-    if bad:
-        raise ValueError(f"checkpoint {step}{DAMAGED}{bad}")
+    # Written by a version with checksums but without them: the save did not finish. Checkpoints
+    # from before checksums existed (no checkpoint_format) are read unchecked.
+    if not has_sums and saved.get("checkpoint_format", 0) >= 1:
+        raise DamagedCheckpoint(f"checkpoint {step}{DAMAGED}{damage(ckpt, step)}")
     try:
         cfg = from_json(saved)
     except (TypeError, ValueError, KeyError) as e:

@@ -19,9 +19,13 @@ class MetricsLog:
         self._writer = None
 
     def rows(self) -> list[dict]:
+        """The rows written; a last line cut short by a crash mid-append is dropped."""
         if not os.path.exists(self.path):
             return []
-        return [json.loads(line) for line in open(self.path) if line.strip()]
+        lines = [line for line in open(self.path) if line.strip()]
+        if lines and not lines[-1].endswith("\n"):
+            lines = lines[:-1]
+        return [json.loads(line) for line in lines]
 
     def start(self):
         self._replace([])
@@ -35,7 +39,8 @@ class MetricsLog:
         files.write_bytes(self.path, "".join(json.dumps(files.json_safe(r)) + "\n" for r in rows).encode())
 
     def write(self, row: dict):
-        self._replace(self.rows() + [row])
+        """Append one row (flushed and synced: it is on disk before the checkpoint covering it)."""
+        files.append_bytes(self.path, (json.dumps(files.json_safe(row)) + "\n").encode())
         writer = self._tensorboard()
         if writer:
             for k, v in row.items():

@@ -13,6 +13,7 @@ bit for bit, as an uninterrupted one (on a CPU, where the arithmetic is determin
 """
 from __future__ import annotations
 
+import json
 import math
 import os
 import signal
@@ -80,10 +81,17 @@ class NonFiniteError(RuntimeError):
     """Training produced a non-finite loss or parameters: the run stops, nothing is saved."""
 
 
+@jax.jit
+def finite_flags(loss, params, ema):
+    """[3] bool: loss, parameters and moving average all finite (one compiled reduction)."""
+    return jnp.stack([jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(t)]))
+                      for t in (loss, params, ema)])
+
+
 def check_finite(state, loss, it: int, last_saved: int):
     """Raise NonFiniteError if the loss [N] or any parameter of `state` is NaN or infinite."""
-    bad = [name for name, tree in (("loss", loss), ("parameters", state.params.net), ("moving average", state.ema.net))
-           if not bool(jnp.all(jnp.asarray([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)])))]
+    ok = np.asarray(finite_flags(loss, state.params.net, state.ema.net))
+    bad = [name for name, fine in zip(("loss", "parameters", "moving average"), ok) if not fine]
     if bad:
         raise NonFiniteError(f"iteration {it}: non-finite {' and '.join(bad)} (learning rate too high, or "
                              f"non-finite data?); stopped without saving: the last good checkpoint is "
@@ -97,7 +105,6 @@ class Run:
 
     def __init__(self, cfg: RunConfig, evaluate: Evaluate | None = None, progress: bool = True, log=print):
         self.cfg, self.evaluate, self.progress, self.log = cfg, evaluate, progress, log
-        mesh.initialize_distributed()       # several processes: before JAX's first computation
         self.layout = mesh.make_layout(cfg)  # refuse what cannot be placed or fit before anything is compiled
         budget.check_fits(cfg)
         self.backend = Backend(cfg.world, resolve_backend(cfg.backend))
@@ -153,28 +160,36 @@ class Run:
         self.saved_at = int(ck.counters.iteration)
 
     def restore(self) -> Checkpointed | None:
-        """The newest checkpoint of this run directory (None if there is none), refused if it
-        was written with a configuration that computes differently."""
+        """The newest intact checkpoint of this run directory (None if there is none), refused
+        if it was written with a configuration that computes differently. Damaged newer
+        checkpoints are deleted (after that check) and redone."""
         if not checkpoint.steps(self.ckpt_dir):
             return None
         try:
             loaded = checkpoint.load_checkpoint(self.ckpt_dir, warn=self.log)
-        except checkpoint.NoIntactCheckpoint as e:
-            if not e.all_unfinished:
-                raise
+        except checkpoint.NoIntactCheckpoint as e:   # every save was interrupted or corrupted
+            self.check_same_config(self.saved_config())
             self.log(f"[ttmjx] {e}; starting the run afresh")
-            checkpoint.discard_after(self.ckpt_dir, -1)
+            checkpoint.discard(self.ckpt_dir, e.skipped)
             return None
-        checkpoint.discard_after(self.ckpt_dir, loaded.step)
-        mine = to_json(self.cfg)
-        diff = {k for k in set(loaded.meta) | set(mine)
-                if loaded.meta.get(k) != mine.get(k) and k not in RESUME_MAY_CHANGE}
-        if diff:
-            raise ValueError(f"{self.cfg.run_dir} holds a run with a different config (fields {sorted(diff)}); "
-                             f"resume with the same config or choose a new run_dir")
+        self.check_same_config(loaded.meta)
+        checkpoint.discard(self.ckpt_dir, loaded.skipped)
         self._absorbed = list(loaded.meta.get("absorbed_data", []))
         self.saved_at = loaded.step
         return self.place(loaded.ck)   # restored on one device, whatever the devices that saved it
+
+    def saved_config(self) -> dict:
+        """The run directory's config.json ({} if it has none)."""
+        path = os.path.join(self.cfg.run_dir, "config.json")
+        return json.load(open(path)) if os.path.exists(path) else {}
+
+    def check_same_config(self, saved: dict):
+        """ValueError if `saved` (a run's config) computes differently from this run's."""
+        mine = to_json(self.cfg)
+        diff = {k for k in set(saved) | set(mine) if saved and saved.get(k) != mine.get(k) and k not in RESUME_MAY_CHANGE}
+        if diff:
+            raise ValueError(f"{self.cfg.run_dir} holds a run with a different config (fields {sorted(diff)}); "
+                             f"resume with the same config or choose a new run_dir")
 
     def start(self) -> Checkpointed:
         """A fresh run (config, initial state, empty log) or the resumed one."""

@@ -200,7 +200,7 @@ class TrainArgs(Report):
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class EvalArgs(Report):
     """Goal-reaching metrics of a run's checkpoint (its moving-average policy)."""
-    BOUNDS: ClassVar[dict] = {"per_goal": (1, batch_limit), "member": (0, None)}
+    BOUNDS: ClassVar[dict] = {"per_goal": (1, batch_limit), "member": (0, None), "step": (0, None)}
     run: RunPath
     """Run directory (or its checkpoints/ directory)."""
     distribution: Literal[THROW_DISTRIBUTIONS] | None = None
@@ -215,6 +215,8 @@ class EvalArgs(Report):
     """Seed of the throws and uniform goals."""
     member: int | None = None
     """Evaluate one ensemble member alone; None: the whole ensemble."""
+    step: int | None = None
+    """Checkpoint step; None: the newest intact one."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -376,8 +378,7 @@ def train(a: TrainArgs) -> None:
 
 def evaluate(a: EvalArgs) -> None:
     from eval.evaluate import evaluate_checkpoint
-    # (path, goals, per_goal, distribution, backend, seed, member)
-    out = evaluate_checkpoint(a.run, a.goals, a.per_goal, a.distribution, a.backend, a.seed, a.member)
+    out = evaluate_checkpoint(a.run, a.goals, a.per_goal, a.distribution, a.backend, a.seed, a.member, a.step)
     text = table(out, skip=("per_goal",))
     for g, m in out.get("per_goal", {}).items():
         text += (f"\ngoal {g}: <=30cm {m['within_30cm']:.0%} <=20cm {m['within_20cm']:.0%} "
@@ -534,10 +535,10 @@ def enable_compile_cache():
 
 def main(argv: list[str] | None = None) -> None:
     from training.mesh import initialize_distributed
-    initialize_distributed()   # several processes: before JAX's first computation (presets probe devices)
     name, rest = command_of(sys.argv[1:] if argv is None else list(argv))
     cmd = COMMANDS[name]
     try:
+        initialize_distributed()   # several processes: before JAX's first computation (presets probe devices)
         args = cmd.parse(rest) if cmd.parse else parse_args(name, cmd.args, rest)
         enable_compile_cache()
         cmd.run(args)

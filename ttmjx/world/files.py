@@ -28,6 +28,14 @@ def write_bytes(path: str, data: bytes) -> None:
         raise
 
 
+def append_bytes(path: str, data: bytes) -> None:
+    """Append `data` to `path` and sync it to disk (a crash can cut only this append short)."""
+    with open(path, "ab") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+
+
 def json_safe(x):
     """Non-finite floats -> None, recursively (JSON has no NaN or infinity)."""
     if isinstance(x, float) and not math.isfinite(x):

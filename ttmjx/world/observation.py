@@ -19,8 +19,6 @@ JOINTS = slice(0, 8)
 BALL_POS = slice(8, 11)
 BALL_VEL = slice(11, 14)       # 16-value frames only
 GOAL = slice(-2, None)         # the last two columns of either width
-GOAL_13 = slice(11, 13)        # the same columns, as positive indices of a 13-value frame
-N_JOINTS = 8
 
 
 def check_width(width: int) -> int:
@@ -94,7 +92,3 @@ def frame_stack(obs, k: int):
     """[B, T, O] -> [B, T, k, O]: the last k frames at each step, oldest first (numpy or JAX)."""
     return obs[:, stack_index(obs.shape[1], k)]
 
-
-def stack_at(frames, t: int, k: int):
-    """[T, O] frames -> [k, O]: the frame stack at step t."""
-    return frames[stack_index(t + 1, k)[t]]
