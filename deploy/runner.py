@@ -8,6 +8,12 @@ still enters the frame stack, the robot holds its target, the policy is not call
 counted, never accumulated into the schedule. A command that leaves after the next deadline
 counts as an overrun.
 
+Start. t0 is the launch, where the simulation's episodes start (frame n shows the ball n * dt
+after the launch; the first frame fills the stack): the thrower's announced launch time
+(run_episode's t_start), or else the first sample of the incoming ball's track, found when the
+trigger fires. Ticks whose deadlines passed before the episode began are logged (frames from
+the buffered samples, into the stack) but not executed, and are not counted as skipped.
+
 Inputs. Joint feedback (Robot.read) and ball samples (BallTracker.read) are validated one by
 one (deploy.safety.FAULTS), buffered, and linearly interpolated to each deadline.
 
@@ -56,6 +62,7 @@ class RunnerConfig:
     home_tolerance: float = 0.02    # |q - home| per joint that counts as home
     home_timeout_s: float = 10.0
     arm_timeout_s: float = 10.0     # waiting for a ball
+    arm_poll_s: float = 0.001       # the tracker is read this often while waiting for a ball
     trigger_speed: float = 1.0      # m/s toward the robot (-x) that starts an episode
     ball_box: tuple = ((-4.0, 4.0), (-3.0, 3.0), (0.0, 4.0))   # plausible ball x, y, z (m)
     max_ball_speed: float = 40.0    # m/s between two ball samples
@@ -63,7 +70,7 @@ class RunnerConfig:
 
     def __post_init__(self):
         for name in ("stale_s", "future_s", "jump_factor", "home_timeout_s", "arm_timeout_s",
-                     "max_ball_speed"):
+                     "arm_poll_s", "max_ball_speed"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"RunnerConfig.{name}={getattr(self, name)}, expected > 0")
         if not 0 < self.home_speed <= 1:
@@ -72,6 +79,11 @@ class RunnerConfig:
             raise ValueError(f"RunnerConfig.max_extrapolate_s={self.max_extrapolate_s}, expected >= 0")
         if self.settle_reads < 1:
             raise ValueError(f"RunnerConfig.settle_reads={self.settle_reads}, expected >= 1")
+
+
+# Two ball samples more than this many newest sampling intervals apart belong to different tracks
+# (a dropped sample or two is not a gap).
+TRACK_GAP = 2.5
 
 
 class NoBallError(TimeoutError):
@@ -119,6 +131,7 @@ class Runner:
         self.limits = limits_from_contract(contract)
         self.true_speed = np.asarray(contract.max_speed, np.float64)
         self.home = np.asarray(contract.home, np.float64)
+        self._home = self.home                          # where this homing goes (move_home)
         self.sm = StateMachine()
         self.joints, self.ball = SampleBuffer(8), SampleBuffer(3)
         self.last_target: np.ndarray | None = None     # the last command sent [8]
@@ -149,15 +162,34 @@ class Runner:
         self.sm.require(Mode.ARMED, action="disarm()")
         self.sm.to(Mode.IDLE, self.clock.now(), "disarm")
 
-    def move_home(self) -> bool:
-        """IDLE or HOLD -> HOMING -> ARMED (True), or -> HOLD on a fault or timeout (False)."""
+    def move_home(self, pose=None) -> bool:
+        """IDLE or HOLD -> HOMING -> ARMED (True), or -> HOLD on a fault or timeout (False).
+
+        pose [8]: where to wait for the ball this time (default: the contract's home), e.g. the
+        perturbed home poses the simulation starts its episodes from; within the joint ranges."""
         self.sm.require(Mode.IDLE, Mode.HOLD, action="move_home()")
+        self._home = self._check_pose(pose)
         with self._hold_on_error():
             return self._move_home()
 
-    def run_episode(self, goal) -> Episode | None:
+    def _check_pose(self, pose) -> np.ndarray:
+        if pose is None:
+            return self.home
+        q = np.asarray(pose, np.float64)
+        lim = self.limits
+        if q.shape != (8,) or not np.all(np.isfinite(q)) or np.any((q < lim.lower) | (q > lim.upper)):
+            raise ValueError(f"move_home: pose must be 8 finite joint values within the ranges, got {pose!r}")
+        return q
+
+    def run_episode(self, goal, t_start: float | None = None) -> Episode | None:
         """ARMED: wait for a ball, then run one episode toward goal [2].
 
+        t_start: the launch time, where the thrower announces it (a launcher this computer
+        fires): tick 0 is then at t_start, as a simulated episode starts at the launch (the
+        tracker must deliver its launch sample by then, i.e. without latency, as the simulated
+        station's `zero` timing does; else tick 0 finds the ball stale and the runner holds).
+        Without it tick 0 is at the first sample of the incoming ball's track (_track_start),
+        found when the tracker sees the ball coming.
         Returns the Episode (mode then IDLE, or HOLD after a fault), or None if a fault while
         waiting put the runner in HOLD. Raises NoBallError (still ARMED) if no ball came.
         """
@@ -166,27 +198,29 @@ class Runner:
             raise ValueError(f"run_episode takes one goal (x, y), got {goal.shape[0]}")
         self.sm.require(Mode.ARMED, action="run_episode()")
         with self._hold_on_error():
-            if not self._wait_for_ball():
+            if not self._wait_for_ball(t_start):
                 return None
-            return self._run(goal[0])
+            return self._run(goal[0], self._track_start() if t_start is None else float(t_start))
 
     def run_episodes(self, goals, out_dir: str | None = None,
-                     on_armed: Callable[[int], None] | None = None,
+                     on_armed: Callable[[int], float | None] | None = None,
                      prefix: str = "episode",
                      complete: Callable[[int, Episode], Episode] | None = None,
-                     on_no_ball: Callable[[int], None] | None = None) -> list[Episode]:
-        """One episode per goal [N, 2]: move home, (on_armed(i)), run, (complete(i, ep)), save as
-        `<prefix>_<i:04d>` under out_dir. Stops early (returning what ran) if the runner ends up
-        in HOLD, since only an operator may clear a hold. With on_no_ball, a ball that never
-        came (NoBallError) calls on_no_ball(i) and moves on to the next goal; without, it raises."""
+                     on_no_ball: Callable[[int], None] | None = None,
+                     poses=None) -> list[Episode]:
+        """One episode per goal [N, 2]: move home (to poses[i] [8] if given), (on_armed(i)), run,
+        (complete(i, ep)), save as `<prefix>_<i:04d>` under out_dir. on_armed may return the
+        launch time of the throw it started (run_episode's t_start). Stops early (returning
+        what ran) if the runner ends up in HOLD, since only an operator may clear a hold. With
+        on_no_ball, a ball that never came (NoBallError) calls on_no_ball(i) and moves on to
+        the next goal; without, it raises."""
         episodes = []
         for i, goal in enumerate(check_goals(goals)):
-            if self.mode == Mode.HOLD or not self.move_home():
+            if self.mode == Mode.HOLD or not self.move_home(None if poses is None else poses[i]):
                 break
-            if on_armed is not None:
-                on_armed(i)
+            t_start = on_armed(i) if on_armed is not None else None
             try:
-                ep = self.run_episode(goal)
+                ep = self.run_episode(goal, t_start)
             except NoBallError:
                 if on_no_ball is None:
                     raise
@@ -312,10 +346,10 @@ class Runner:
             self.fault_counts[name] += 1
 
     # ------------------------------------------------------------------ loops
-    def _paced(self, timeout_s: float):
-        """Yield (n, now) on the deadline grid t0 + n * dt, skipping deadlines already passed,
-        until timeout_s; then yield (-1, now) once."""
-        dt, t0 = self.contract.dt, self.clock.now()
+    def _paced(self, timeout_s: float, dt: float | None = None):
+        """Yield (n, now) on the deadline grid t0 + n * dt (default: the control period),
+        skipping deadlines already passed, until timeout_s; then yield (-1, now) once."""
+        dt, t0 = dt or self.contract.dt, self.clock.now()
         n = 0
         while True:
             self.clock.sleep_until(t0 + n * dt)
@@ -380,48 +414,84 @@ class Runner:
     def _step_home(self, now: float) -> bool:
         """Send one slow, speed-limited command toward home; at home: ARMED (True)."""
         cfg = self.config
-        cmd = safe_target(self.limits, self.home, self.last_target, self._elapsed(now), cfg.home_speed)
+        cmd = safe_target(self.limits, self._home, self.last_target, self._elapsed(now), cfg.home_speed)
         self._send(cmd.target, now)
-        if (np.array_equal(cmd.target, self.home)
-                and np.all(np.abs(self.joints.newest - self.home) <= cfg.home_tolerance)):
+        if (np.array_equal(cmd.target, self._home)
+                and np.all(np.abs(self.joints.newest - self._home) <= cfg.home_tolerance)):
             self.sm.to(Mode.ARMED, now, "at home")
             return True
         return False
 
-    def _wait_for_ball(self) -> bool:
-        """ARMED until a fresh ball moves toward the robot (True); HOLD on a fault (False)."""
+    def _wait_for_ball(self, t_start: float | None = None) -> bool:
+        """ARMED until a fresh ball moves toward the robot, or (t_start given) until the last
+        tick before the launch (True); HOLD on a fault (False)."""
+        if t_start is not None:
+            return self._wait_until(float(t_start))
         cfg = self.config
-        for n, now in self._paced(cfg.arm_timeout_s):
+        for n, now in self._paced(cfg.arm_timeout_s, cfg.arm_poll_s):
             if n < 0:
                 raise NoBallError(f"no ball moving toward the robot faster than "
                                   f"{cfg.trigger_speed} m/s within {cfg.arm_timeout_s} s")
-            faults = self._poll_joints(now) & LATCHING
-            if faults:
-                self._count(faults)
-                self.hold("armed: " + ",".join(fault_names(faults)))
+            if not self._armed_poll(now):
                 return False
-            self._poll_ball(now)
-            if len(self.ball) >= 2 and not self._ball_stale(now):
-                vx = (self.ball.values[-1, 0] - self.ball.values[-2, 0]) / (
-                    self.ball.times[-1] - self.ball.times[-2])
-                if vx < -cfg.trigger_speed:
-                    return True
+            if self._ball_coming(now):
+                return True
         raise AssertionError("unreachable")
 
-    def _run(self, goal: np.ndarray) -> Episode:
+    def _wait_until(self, t_start: float) -> bool:
+        """ARMED, polling every control period, until less than one is left before t_start."""
+        now = self.clock.now()
+        while now + self.contract.dt < t_start:
+            self.clock.sleep_until(now + self.contract.dt)
+            now = self.clock.now()
+            if not self._armed_poll(now):
+                return False
+        return True
+
+    def _armed_poll(self, now: float) -> bool:
+        """Read both sensors while ARMED; a latching joint fault -> HOLD (False)."""
+        faults = self._poll_joints(now) & LATCHING
+        if faults:
+            self._count(faults)
+            self.hold("armed: " + ",".join(fault_names(faults)))
+            return False
+        self._poll_ball(now)
+        return True
+
+    def _ball_coming(self, now: float) -> bool:
+        """The two newest ball samples are fresh, at most stale_s apart, and move toward the
+        robot (-x) fast enough."""
+        if len(self.ball) < 2 or self._ball_stale(now):
+            return False
+        dt = self.ball.times[-1] - self.ball.times[-2]
+        dx = self.ball.values[-1, 0] - self.ball.values[-2, 0]
+        return dt <= self.config.stale_s and dx < -self.config.trigger_speed * dt
+
+    def _track_start(self) -> float:
+        """The time of the first sample of the incoming ball's track: the oldest of the newest
+        samples that each moved toward the robot faster than trigger_speed since the one before,
+        with no gap (at most TRACK_GAP times the newest sampling interval) in between."""
+        t, x = self.ball.times, self.ball.values[:, 0]
+        dt = np.diff(t)
+        coming = (dt <= TRACK_GAP * dt[-1]) & (np.diff(x) < -self.config.trigger_speed * dt)
+        not_coming = np.flatnonzero(~coming)
+        return float(t[not_coming[-1] + 1 if len(not_coming) else 0])
+
+    def _run(self, goal: np.ndarray, t0: float) -> Episode:
         c = self.contract
         T, dt = c.horizon, c.dt
         log = self._log = EpisodeLog(T, goal, c.obs_size)
         stack = FrameStack(c.frame_stack, c.obs_size)
-        t0 = self.clock.now()
-        self.sm.to(Mode.RUNNING, t0, "ball in play")
+        self.sm.to(Mode.RUNNING, self.clock.now(), "ball in play")
         history_start = len(self.sm.history) - 1
         self._state, reset_fault = None, 0
         try:
             self._state = self.policy.reset()
         except Exception:
             reset_fault = FAULTS["policy_error"]
-        end, n = "done", 0
+        end, n = "done", min(T, max(0, int(np.floor((self.clock.now() - t0) / dt))))
+        for m in range(n):                                     # before the episode began
+            self._record_past(log, stack, m, t0 + m * dt, goal)
         while n < T:
             self.clock.sleep_until(t0 + n * dt)
             wake = self.clock.now()
@@ -448,13 +518,19 @@ class Runner:
 
     def _record_skipped(self, log: EpisodeLog, stack: FrameStack, m: int, t_grid: float,
                         goal: np.ndarray) -> None:
+        self._record_past(log, stack, m, t_grid, goal, FAULTS["skipped"])
+        self.skipped += 1
+        self._count(FAULTS["skipped"])
+
+    def _record_past(self, log: EpisodeLog, stack: FrameStack, m: int, t_grid: float,
+                     goal: np.ndarray, faults: int = 0) -> None:
+        """Log tick m, whose deadline has passed, from the buffered samples; its frame enters
+        the stack; the robot holds its target."""
         joint, ball = self._at(self.joints, t_grid), self._at(self.ball, t_grid)
         frame = frame_of(joint.value, ball.value, goal)
         stack.push(frame)
         log.tick(m, t_grid=t_grid, frame=frame, ball=ball, joint=joint, command=self.last_target,
-                 faults=FAULTS["skipped"], executed=False)
-        self.skipped += 1
-        self._count(FAULTS["skipped"])
+                 faults=faults, executed=False)
 
     def _tick(self, log: EpisodeLog, stack: FrameStack, n: int, t_grid: float, wake: float,
               goal: np.ndarray, faults: int) -> int:

@@ -11,8 +11,12 @@ MuJoCo C physics, so the robot runner plays whole episodes exactly as against ha
   a control step). Joint feedback is sampled every 1/joint_hz s and delivered
   joint_latency_s late, timestamped on the clock's time base. Every command is logged (time,
   target, true joints), as deploy.fakes.FakeRobot does, for deploy.safety.count_violations.
-* Ball: launched by `ttmjx.world.thrower.sample_throws` (throw_in); the tracker samples it every
-  1/tracker_hz s (125 Hz), timestamped, delivered tracker_latency_s late. Before a launch and
+* Ball: launched by `ttmjx.world.thrower.sample_throws` (throw_in, which returns the launch time,
+  on a physics step); the tracker samples it every 1/tracker_hz s (125 Hz), from the launch
+  instant on when it falls on the tracker's rate, timestamped, delivered tracker_latency_s late.
+  `TIMING` names sensor profiles: nominal (the defaults above) and zero (every physics step
+  sampled, no latency: with SimClock(charge_compute=False) and episodes started at the launch
+  the runner sees what the simulation's policy sees, scripts/runner_vs_eval.py). Before a launch and
   after `finish_throw` the ball is parked out of sight (the tracker reports nothing). The room
   keeps a ball in view (a real lab is enclosed): it bounces off the floor and stops at barriers
   (|x| = room_x, |y| = room_y), so a missed ball does not vanish from the tracker mid-episode.
@@ -229,12 +233,23 @@ class SimTracker:
         return np.asarray(ts, np.float64), np.asarray(xs, np.float64).reshape(-1, 3)
 
 
+# Sensor timing profiles (SimStation keyword arguments). nominal: the lab's sensors. zero: ideal
+# sensors, every physics step sampled and delivered at once, so the runner sees the state the
+# simulation's policy sees (with SimClock(charge_compute=False) and the runner's episodes started
+# at the launch: scripts/runner_vs_eval.py).
+TIMING = {
+    "nominal": {"joint_hz": 250.0, "joint_latency_s": 0.002, "tracker_hz": 125.0, "tracker_latency_s": 0.004},
+    "zero": {"joint_hz": None, "joint_latency_s": 0.0, "tracker_hz": None, "tracker_latency_s": 0.0},
+}
+
+
 class SimStation:
-    """Robot, tracker and clock on MuJoCo C physics (module docstring)."""
+    """Robot, tracker and clock on MuJoCo C physics (module docstring). joint_hz / tracker_hz
+    None: a sample every physics step."""
 
     def __init__(self, cfg: World = World(), contract: Contract | None = None, clock=None,
-                 seed: int = 0, joint_hz: float = 250.0, joint_latency_s: float = 0.002,
-                 tracker_hz: float = 125.0, tracker_latency_s: float = 0.004,
+                 seed: int = 0, joint_hz: float | None = 250.0, joint_latency_s: float = 0.002,
+                 tracker_hz: float | None = 125.0, tracker_latency_s: float = 0.004,
                  tracker_noise_m: float = 0.0, ramp_s: float | None = None, q0=None,
                  throws_per_batch: int = 16, room_x: float = 3.5, room_y: float = 2.5):
         self.cfg = cfg
@@ -282,7 +297,9 @@ class SimStation:
         mujoco.mj_forward(self.m, self.d)
         return q0
 
-    def _steps_per(self, hz: float, name: str) -> int:
+    def _steps_per(self, hz: float | None, name: str) -> int:
+        if hz is None:
+            return 1
         k = 1.0 / (hz * self.cfg.physics_dt) if hz > 0 else 0.5
         if abs(k - round(k)) > 1e-6 or round(k) < 1:
             raise ValueError(f"{name}={hz} is not a whole number of {self.cfg.physics_dt}s physics steps")
@@ -333,8 +350,9 @@ class SimStation:
         self._throw_i += 1
         return th.launch_pos[i], th.launch_vel[i], th.launch_spin[i], th.aim[i]
 
-    def throw_in(self, delay_s: float = 0.3, throw=None) -> None:
-        """Launch the next sampled throw delay_s from now (a throw in flight is removed).
+    def throw_in(self, delay_s: float = 0.3, throw=None) -> float:
+        """Launch the next sampled throw at the first physics step delay_s or more from now (a
+        throw in flight is removed); returns the launch time.
 
         throw: (launch_pos [3], launch_vel [3], launch_spin [3], aim [2]) to launch instead of
         a sampled one (tests, or replaying a logged launch)."""
@@ -346,7 +364,12 @@ class SimStation:
         now = self.sync()
         if self.in_flight:
             self._park()
-        self.pending = (now + float(delay_s), throw)
+        step = max(math.ceil((now + float(delay_s) - self.t_origin) / self.dt - 1e-9), self.n)
+        t_launch = self.t_origin + step * self.dt
+        self.pending = (t_launch, throw)
+        if self._launch_if_due():
+            self._sample_ball(self.time)
+        return t_launch
 
     def _launch(self, t: float) -> None:
         self._fold_track()
@@ -402,9 +425,9 @@ class SimStation:
         return excluded() if excluded is not None else contextlib.nullcontext()
 
     def _step(self) -> None:
+        """One physics step; a launch due at its end happens then, before the sensors sample
+        (so the tracker can see the ball leave the thrower)."""
         t = self.time
-        if self.pending is not None and t >= self.pending[0] - 1e-12:
-            self._launch(t)
         self.d.ctrl[:] = self._ctrl_at(t + self.dt)       # the ramped target at the end of the step
         prev = self.ball()
         mujoco.mj_step(self.m, self.d)
@@ -415,17 +438,31 @@ class SimStation:
             self._room()
         else:
             self._park()
+        self._launch_if_due()
         self._sample(self.time)
+
+    def _launch_if_due(self) -> bool:
+        """Launch the pending throw if its time has come (True)."""
+        if self.pending is None or self.time < self.pending[0] - 1e-12:
+            return False
+        self._launch(self.time)
+        return True
 
     def _sample(self, t: float) -> None:
         """The joint feedback and the ball tracker, each at its rate."""
         if self.n % self.joint_every == 0:
             self.joint_samples.append((t, self.joints()))
-        if self.in_flight and self.n % self.ball_every == 0:
-            x = self.ball()[:3]
-            if self.noise_m > 0:
-                x = x + self.rng.normal(0.0, self.noise_m, 3)
-            self.ball_samples.append((t, x))
+        if self.in_flight:
+            self._sample_ball(t)
+
+    def _sample_ball(self, t: float) -> None:
+        """The tracker's sample at t (physics step self.n), if it falls on its rate."""
+        if self.n % self.ball_every:
+            return
+        x = self.ball()[:3]
+        if self.noise_m > 0:
+            x = x + self.rng.normal(0.0, self.noise_m, 3)
+        self.ball_samples.append((t, x))
 
     def _track_step(self, prev: np.ndarray) -> None:
         """Keep the step just taken (ball [6] before it, ball [6] and blade centre [3] after) for
@@ -490,19 +527,28 @@ def complete_episode(ep: Episode, ev: ThrowEvents | None, contract: Contract) ->
 
 
 def play(runner: Runner, station: SimStation, goals, out_dir: str | None = None,
-         prefix: str = "episode", throw_delay_s: float = 0.3, finish_s: float = 3.0) -> list[Episode]:
+         prefix: str = "episode", throw_delay_s: float = 0.3, finish_s: float = 3.0,
+         throws=None, poses=None, sync_launch: bool = False) -> list[Episode]:
     """One episode per goal [N, 2], as Runner.run_episodes (move home, throw, run, save
     `<prefix>_<i:04d>`; stop if the runner ends in HOLD), with each episode completed by the
     station's events before it is saved. A throw that never reached the robot (NoBallError)
-    disarms and moves on to the next goal."""
+    disarms and moves on to the next goal.
+
+    throws: N launches (SimStation.throw_in's `throw`) instead of sampled ones; poses [N, 8]:
+    each episode's start pose (Runner.move_home); sync_launch: each episode starts at the
+    launch time the station announces (Runner.run_episode's t_start), not on the ball trigger."""
+    def armed(i):
+        t_launch = station.throw_in(throw_delay_s, None if throws is None else throws[i])
+        return t_launch if sync_launch else None
+
     def no_ball(i):
         runner.disarm()
         station.finish_throw(finish_s)
 
     return runner.run_episodes(
-        goals, out_dir, on_armed=lambda i: station.throw_in(throw_delay_s), prefix=prefix,
+        goals, out_dir, on_armed=armed, prefix=prefix,
         complete=lambda i, ep: complete_episode(ep, station.finish_throw(finish_s), runner.contract),
-        on_no_ball=no_ball)
+        on_no_ball=no_ball, poses=poses)
 
 
 def goal_summary(episodes: list[Episode]) -> dict:
@@ -568,10 +614,12 @@ def summarize(runner: Runner, station: SimStation, episodes: list[Episode], goal
 
 def run_sim(policy_dir: str, goals, out_dir: str | None = None, seed: int = 0,
             distribution: str | None = None, realtime: bool = False, charge_compute: bool = True,
-            throw_delay_s: float = 0.3, config: RunnerConfig = RunnerConfig()) -> dict:
+            throw_delay_s: float = 0.3, config: RunnerConfig = RunnerConfig(),
+            timing: str = "nominal", sync_launch: bool = False) -> dict:
     """Load an export (every check of deploy.export.load_export), build the simulated station
-    in the export's World (throws from `distribution` if given) and play one episode per goal
-    [N, 2]; returns the summary (summarize) plus the export's self-test error."""
+    in the export's World (throws from `distribution` if given, sensors of the TIMING profile
+    `timing`) and play one episode per goal [N, 2] (sync_launch: as `play`); returns the
+    summary (summarize) plus the export's self-test error."""
     from deploy.export import export_world, load_export
     from deploy.hardware import MonotonicClock
     policy, contract = load_export(policy_dir)
@@ -580,13 +628,13 @@ def run_sim(policy_dir: str, goals, out_dir: str | None = None, seed: int = 0,
         cfg = cfg.with_throws(distribution)
     goals = check_goals(goals)
     clock = MonotonicClock() if realtime else SimClock(charge_compute=charge_compute)
-    station = SimStation(cfg, contract, clock=clock, seed=seed)
+    station = SimStation(cfg, contract, clock=clock, seed=seed, **TIMING[timing])
     runner = Runner(station.robot, station.tracker, clock, policy, contract, config)
     if out_dir is not None:
         os.makedirs(out_dir, exist_ok=True)
     station.prefetch()
     wall = time.perf_counter()
-    episodes = play(runner, station, goals, out_dir, throw_delay_s=throw_delay_s)
+    episodes = play(runner, station, goals, out_dir, throw_delay_s=throw_delay_s, sync_launch=sync_launch)
     out = summarize(runner, station, episodes, goals, time.perf_counter() - wall)
     out.update({"policy": policy_dir, "self_test_error": policy.self_test_error,
                 "distribution": cfg.throws.name, "out": out_dir, "seed": seed})

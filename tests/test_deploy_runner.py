@@ -226,16 +226,21 @@ def test_clean_episode_is_on_the_grid_and_observes_the_interpolated_world():
     ep = one_episode(runner, tracker)
     x, T = ep.extras, CONTRACT.horizon
     assert ep.meta["end"] == "done" and ep.traj.valid.all() and x["executed"].all()
-    t0 = ep.meta["t0"]
+    # Tick 0 is the first 125 Hz sample of the throw (its launch, as in simulation); it runs
+    # when the trigger has seen the ball coming, within the tick; the others on time.
+    t0, t_launch = ep.meta["t0"], tracker.throws[-1][0]
+    assert t0 == pytest.approx(np.ceil(t_launch * 125 - 1e-9) / 125)
     np.testing.assert_allclose(x["t_grid"], t0 + np.arange(T) * DT, atol=1e-9)
-    np.testing.assert_allclose(x["latency"], 0.0, atol=1e-9)
+    assert 0 < x["latency"][0] < DT
+    np.testing.assert_allclose(x["latency"][1:], 0.0, atol=1e-9)
     # Observed joints: interpolated 250 Hz feedback (2 ms late) vs the true joints at each deadline.
     true_q = np.stack([robot.true_q(t) for t in x["t_grid"]])
     err = np.abs(ep.traj.obs[0, :, :8] - true_q)
     assert np.all(err <= np.asarray(CONTRACT.max_speed) * 0.0061 + 1e-5), err.max(0)
-    # Observed ball: interpolated 125 Hz samples vs the true path at each deadline (< 1 cm).
+    # Observed ball: interpolated 125 Hz samples vs the true path at each deadline (< 2 cm: across
+    # a bounce, following the newest samples, up to 12 ms old, cuts the corner).
     vis, xyz = tracker.positions(x["t_grid"])
-    assert vis.all() and np.abs(observation.ball_pos(ep.traj.obs[0]) - xyz).max() < 0.01
+    assert vis.all() and np.abs(observation.ball_pos(ep.traj.obs[0]) - xyz).max() < 0.02
     np.testing.assert_allclose(observation.goal(ep.traj.obs[0]), np.tile([0.7, 0.3], (T, 1)), atol=1e-6)
     # The record's actions are exactly what the robot received during the episode.
     sent_t, sent_q = robot.command_log()
@@ -252,9 +257,13 @@ def test_jitter_below_a_tick_never_shifts_the_deadlines():
     for ep in eps:
         x = ep.extras
         np.testing.assert_allclose(x["t_grid"], ep.meta["t0"] + np.arange(CONTRACT.horizon) * DT, atol=1e-9)
-        assert x["executed"].all() and np.all(x["t_wake"] >= x["t_grid"])
-        assert np.all(x["latency"] < DT) and ep.meta["end"] == "done"
-    assert runner.skipped == 0 and runner.overruns == 0
+        # Ticks whose deadlines passed before the trigger are logged, not executed (the first
+        # sleep, to a deadline already passed, may also be late by the jitter: one skip).
+        first = int(np.argmax(x["executed"]))
+        assert x["executed"][first:].all() and np.all((x["faults"][:first] & ~FAULTS["skipped"]) == 0)
+        assert np.all(x["t_wake"][first:] >= x["t_grid"][first:])
+        assert np.all(x["latency"][first:] < DT) and ep.meta["end"] == "done"
+    assert runner.skipped <= len(eps) and runner.overruns == 0
     assert violations(runner, robot) == NO_VIOLATIONS
 
 
@@ -336,7 +345,8 @@ def test_episodes_are_saved_as_trajectory_records(tmp_path):
                            "joint_used_q": (32, 2, 8), "faults": (32,)}.items():
             assert x[key].shape == shape, key
         assert x["ball_xyz"].shape[1] == 3 and x["ball_ok"].all() and len(x["ball_t"]) > 100
-        assert x["joint_q"].shape[1] == 8 and len(x["joint_t"]) >= CONTRACT.horizon - 1
+        # (one new joint sample a tick; the late tick 0 rereads the trigger's last one)
+        assert x["joint_q"].shape[1] == 8 and len(x["joint_t"]) >= CONTRACT.horizon - 2
         # The observation is reproducible from the two logged samples it came from.
         (lo, hi), (t_lo, t_hi) = x["ball_used_xyz"].transpose(1, 0, 2), x["ball_used_t"].T
         ext = RunnerConfig().max_extrapolate_s

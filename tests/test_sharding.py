@@ -215,7 +215,8 @@ def test_a_four_device_checkpoint_resumes_on_one_device(runs, demo_dir, tmp_path
     from training.trainer import Run
     run_dir = tmp_path / "resumed"
     shutil.copytree(tmp / "d4", run_dir)
-    checkpoint.discard_after(str(run_dir / "checkpoints"), 3)   # as if stopped after iteration 3
+    ckpts = str(run_dir / "checkpoints")
+    checkpoint.discard(ckpts, [s for s in checkpoint.steps(ckpts) if s > 3])   # as if stopped after iteration 3
     cfg = tiny(demo_dir, run_dir)   # devices=None: all of this process's one device
     out = Run(cfg, evaluate=training_evaluation(cfg), progress=False).run()
     assert out["finished"] and jax.device_count() == 1

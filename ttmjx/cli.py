@@ -263,6 +263,8 @@ class RobotRunArgs(Report):
     """Pace on the real clock."""
     no_compute_time: Flag = False
     """sim: do not charge the runner's computation time to the simulated clock."""
+    timing: Literal["nominal", "zero"] = "nominal"
+    """sim: sensor timing of the station: nominal (tracker 125 Hz, 4 ms; joints 2 ms) or zero (ideal)."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -409,7 +411,7 @@ def robot_run(a: RobotRunArgs) -> None:
     if a.station == "sim":
         from deploy.station import run_sim
         out = run_sim(a.policy, goals, a.out, seed=a.seed, distribution=a.distribution,
-                      realtime=a.realtime, charge_compute=not a.no_compute_time, config=config)
+                      realtime=a.realtime, charge_compute=not a.no_compute_time, config=config, timing=a.timing)
     else:
         out = run_fake(goals, a.out, a.policy, None, None, config, a.realtime)
     m = out.get("metrics", {})
