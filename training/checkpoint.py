@@ -229,8 +229,9 @@ def load_checkpoint(path: str, step: int | None = None, warn: Callable[[str], No
 def _load_step(ckpt: str, step: int) -> Loaded:
     where = os.path.join(ckpt, str(step))
     has_sums = os.path.exists(os.path.join(where, CHECKSUMS))
-    if has_sums and damage(ckpt, step):
-        raise DamagedCheckpoint(f"checkpoint {step}{DAMAGED}{damage(ckpt, step)}")
+    bad = damage(ckpt, step) if has_sums else None    # hashes every file once
+    if bad:
+        raise DamagedCheckpoint(f"checkpoint {step}{DAMAGED}{bad}")
     try:
         saved = restore_config(ckpt, step)
     except Exception as e:  # orbax raises several types for a missing or corrupt JSON item
@@ -238,7 +239,8 @@ def _load_step(ckpt: str, step: int) -> Loaded:
     # Written by a version with checksums but without them: the save did not finish. Checkpoints
     # from before checksums existed (no checkpoint_format) are read unchecked.
     if not has_sums and saved.get("checkpoint_format", 0) >= 1:
-        raise DamagedCheckpoint(f"checkpoint {step}{DAMAGED}{damage(ckpt, step)}")
+        raise DamagedCheckpoint(f"checkpoint {step}{DAMAGED}{os.path.join(where, CHECKSUMS)}: missing "
+                                f"(the save did not finish)")
     try:
         cfg = from_json(saved)
     except (TypeError, ValueError, KeyError) as e:

@@ -181,7 +181,10 @@ class Run:
     def saved_config(self) -> dict:
         """The run directory's config.json ({} if it has none)."""
         path = os.path.join(self.cfg.run_dir, "config.json")
-        return json.load(open(path)) if os.path.exists(path) else {}
+        if not os.path.exists(path):
+            return {}
+        with open(path) as f:
+            return json.load(f)
 
     def check_same_config(self, saved: dict):
         """ValueError if `saved` (a run's config) computes differently from this run's."""
