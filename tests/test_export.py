@@ -459,3 +459,12 @@ def test_latency_benchmark_runs_on_one_thread():
     assert res["threads"] == 1 and res["threads_env"]["OMP_NUM_THREADS"] == "1"
     assert 0 < res["p50_ms"] <= res["p99_ms"] <= res["max_ms"]
     assert 0 < res["prepared_p50_ms"] <= res["prepared_p99_ms"] and res["prepare_p50_ms"] > 0
+
+
+def test_latency_benchmark_of_the_onnx_graph():
+    pytest.importorskip("onnxruntime")
+    res = benchmark("framestack", hidden=64, layers=2, members=2, steps=50, warmup=5, engine="onnx",
+                    obs_size=16, frame_stack=8)
+    assert res["engine"] == "onnx" and res["threads"] == 1 and res["onnxruntime"]
+    assert res["obs_size"] == 16 and res["frame_stack"] == 8
+    assert 0 < res["p50_ms"] <= res["p99_ms"] <= res["max_ms"]
