@@ -37,7 +37,7 @@ def evaluate_uniform(world: World, pcfg: PolicyConfig, params, backend: Backend,
     k_goal, k_run = jax.random.split(key)
     goals = padded(np.asarray(uniform_goals(k_goal, n_goals, world.table), np.float32), members)
     tr = rollout_goals(world, pcfg, params, backend, k_run, goals, members)
-    return goal_metrics(tr.landing, goals, tr.hit)
+    return goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent)
 
 
 def evaluate_five(world: World, pcfg: PolicyConfig, params, backend: Backend, key, per_goal: int = 40,
@@ -46,8 +46,8 @@ def evaluate_five(world: World, pcfg: PolicyConfig, params, backend: Backend, ke
     goals, names = five_goals(per_goal)
     idx = padded(np.arange(len(goals)), members)
     tr = rollout_goals(world, pcfg, params, backend, key, goals[idx], members)
-    out = goal_metrics(tr.landing, goals[idx], tr.hit)
-    out["per_goal"] = per_goal_metrics(tr.landing, goals[idx], tr.hit, [names[i] for i in idx])
+    out = goal_metrics(tr.landing, goals[idx], tr.hit, tr.on_opponent)
+    out["per_goal"] = per_goal_metrics(tr.landing, goals[idx], tr.hit, tr.on_opponent, [names[i] for i in idx])
     return out
 
 
