@@ -1,6 +1,10 @@
 """Self-supervised practice (Algorithm 1): roll the current policies out toward random goals,
 relabel every hit with where the ball landed, append to the one shared cache, train S steps.
 
+Practice goals are uniform over the opponent's half extended TrainConfig.practice_goal_margin
+beyond the table's edges; which episodes join the cache is TrainConfig.practice_keep (every hit,
+as the paper, by default). The round's statistics use the world's one strict goal metric.
+
 `practice_round` is the round, written once. On MJX all of it is pure and `Practice` compiles it
 as ONE jit-compiled function; on a CPU the rollouts step MuJoCo C on the host, so the same
 round runs eagerly around the compiled pieces (goals, append, the S updates).
@@ -33,6 +37,7 @@ from ttmjx.world.record import Trajectories
 class PracticeStats(NamedTuple):
     """Scalars of one practice round (with exploration noise, toward uniform goals)."""
     hit_rate: jax.Array
+    on_table_rate: jax.Array  # first bounce after the hit on the opponent's half
     within_30cm: jax.Array
     within_20cm: jax.Array
     kept: jax.Array          # episodes appended to the cache
@@ -54,8 +59,8 @@ def practice_policy(pcfg: PolicyConfig, tcfg: TrainConfig):
 
 
 def practice_stats(traj: Trajectories, kept_before, kept_after) -> PracticeStats:
-    s = goal_stats(traj.landing, traj.goal, traj.hit, xp=jnp)
-    return PracticeStats(s["hit_rate"], s["within_30cm"], s["within_20cm"],
+    s = goal_stats(traj.landing, traj.goal, traj.hit, traj.on_opponent, xp=jnp)
+    return PracticeStats(s["hit_rate"], s["on_table_rate"], s["within_30cm"], s["within_20cm"],
                          (kept_after - kept_before).astype(jnp.int32))
 
 
@@ -102,9 +107,11 @@ class Practice:
         self._round = self._compiled_round(pure) if pure else self._host_round(policy)
 
     def _pure_parts(self, rollout) -> RoundParts:
-        world, m, margin = self.world, self.episodes, self.tcfg.goal_margin
-        return RoundParts(goals=lambda k: uniform_goals(k, m, world.table), rollout=rollout,
-                          append=lambda c, t: add_episodes(c, t, world.table, margin), train=self.train,
+        """Practice goals beyond the table by practice_goal_margin; kept episodes by practice_keep."""
+        world, m, tcfg = self.world, self.episodes, self.tcfg
+        goal_margin, keep_margin = tcfg.practice_goal_margin, tcfg.practice_keep_margin
+        return RoundParts(goals=lambda k: uniform_goals(k, m, world.table, goal_margin), rollout=rollout,
+                          append=lambda c, t: add_episodes(c, t, world.table, keep_margin), train=self.train,
                           place=self.layout.constrain_throws)
 
     def _compiled_round(self, pure: RoundParts):

@@ -201,12 +201,16 @@ class TrainArgs(Report):
 class EvalArgs(Report):
     """Goal-reaching metrics of a run's checkpoint (its moving-average policy)."""
     BOUNDS: ClassVar[dict] = {"per_goal": (1, batch_limit), "member": (0, None), "step": (0, None)}
+    NEW_DIRS: ClassVar[tuple] = ("out",)
     run: RunPath
     """Run directory (or its checkpoints/ directory)."""
     distribution: Literal[THROW_DISTRIBUTIONS] | None = None
     """Throws; None: the run's."""
     goals: str = "200"
-    """Number of uniform goals over the opponent's half, or 'five' for goals A-E."""
+    """Number of uniform goals over the opponent's half, 'five' for goals A-E, or a goal file (.csv
+    with a header row x,y, or .npy [N, 2]; goals on the opponent's half; one attempt each)."""
+    out: str | None = None
+    """New or empty directory for summary.json, episodes.csv and tracks.npz (docs/DATA.md)."""
     per_goal: int = 40
     """Attempts per goal with --goals five."""
     backend: Backend | None = None
@@ -389,11 +393,14 @@ def train(a: TrainArgs) -> None:
 
 def evaluate(a: EvalArgs) -> None:
     from eval.evaluate import evaluate_checkpoint
-    out = evaluate_checkpoint(a.run, a.goals, a.per_goal, a.distribution, a.backend, a.seed, a.member, a.step)
+    out = evaluate_checkpoint(a.run, a.goals, a.per_goal, a.distribution, a.backend, a.seed, a.member, a.step,
+                              out=a.out)
     text = table(out, skip=("per_goal",))
     for g, m in out.get("per_goal", {}).items():
         text += (f"\ngoal {g}: <=30cm {m['within_30cm']:.0%} <=20cm {m['within_20cm']:.0%} "
-                 f"hit {m['hit_rate']:.0%}")
+                 f"hit {m['hit_rate']:.0%} on table {m['on_table_rate']:.0%}")
+    if a.out:
+        text += f"\nwrote {a.out}/summary.json, episodes.csv, tracks.npz"
     report(a, out, text)
 
 
