@@ -113,7 +113,7 @@ SCALES: dict[str, Scale] = {
     "tiny": Scale("the tiny preset (seconds to a minute per cell on 2 CPU cores; for tests)",
                   lambda setting: runconfig.tiny()),
     "cpu": Scale("the CPU default preset: narrow throws, frame stack 2x256, 2 members, 7k trajectories "
-                 "(~20 min per cell on 2 CPU cores)", lambda setting: runconfig.preset("cpu")),
+                 "(~10-20 min per cell on 2 CPU cores)", lambda setting: runconfig.preset("cpu")),
     "full": Scale(f"paper-sim (setting 'sim': LSTM 2x1024, 1 member) or paper-sim-new (setting 'new': "
                   f"frame stack, 10 members), any-ball throws, {FULL_TRAJECTORIES:,} trajectories "
                   f"(~6-8 min per cell on one H100)", full_base),
@@ -270,6 +270,10 @@ def run(name: str, scale: str, seeds: int, out: str, spec: str | None = None, tr
     """Train the selected cells that are not finished, then rebuild the outputs. The summary has
     'stopped_by_signal' set when a signal cut a cell short (its run resumes next time)."""
     cells = plan(name, scale, seeds, out, spec, trajectories)
+    for c in cells:
+        if c.config.practice and practice_iterations(c.config) == 0:
+            log(f"[ablate] note: {c.name} practises nothing: its {c.config.total_trajectories} trajectories do not "
+                f"exceed its {c.config.demos} demonstrations", file=sys.stderr)
     stopped = 0
     for i, cell in enumerate(cells):
         log(f"[ablate] {name} {scale}: cell {i + 1}/{len(cells)} {cell.name}", file=sys.stderr)

@@ -72,7 +72,8 @@ def markdown(summary: dict) -> str:
         row = [cell_text(v["metrics"].get(k), s, d) for k, _, s, d in cols]
         lines.append(f"| {v['variant']} | {len(v['seeds'])} | " + " | ".join(row) + " |")
     lines += ["", "Mean over seeds +- the 95% interval (Student's t, n - 1 degrees of freedom); no "
-              "interval with one seed. '-': no finished cell (or no ball landed)."]
+              "interval with one seed. '-': no finished cell (or no ball landed). The table is each cell's final "
+              "evaluation; curves.png shows the runs' own evaluations during training (other goals)."]
     return "\n".join(lines) + "\n"
 
 
@@ -117,8 +118,11 @@ def plot_curves(results: list[dict], variants: list[str], png: str, x: str = "tr
             if len(xs) == 0:
                 continue
             ax.plot(xs, scale * ys.mean(0), "o-", ms=3, color=f"C{i}", label=f"{v} (n={len(mine)})")
-            if len(mine) > 1:
+            if len(mine) > 1 and len(xs) > 1:
                 ax.fill_between(xs, scale * ys.min(0), scale * ys.max(0), color=f"C{i}", alpha=0.2)
+            elif len(mine) > 1:   # one evaluation (an LFP run): the band is an error bar
+                mean = scale * ys.mean(0)
+                ax.errorbar(xs, mean, [mean - scale * ys.min(0), scale * ys.max(0) - mean], color=f"C{i}", capsize=4)
     label = "total trajectories (demonstrations + practice)" if x == "trajectories" else "gradient updates"
     for ax, ylabel in zip(axes, ("% of goals within 30 cm", "% of goals within 20 cm", "training examples in the pool")):
         ax.set_xlabel(label), ax.set_ylabel(ylabel), ax.grid(alpha=0.3)

@@ -101,7 +101,8 @@ def test_tiny_demos_ablation_end_to_end_resumes_and_skips(tmp_path):
 
     summary, text = ablate_cli(*argv, "--json")
     assert "resuming " + half.run_dir in text
-    assert summary["cells_run"] == ["d0-seed0", "d10-seed0"] and summary["bootstrap"].startswith("scripted")
+    source = half.config.demo_source                     # the scale's bootstrap demonstrator
+    assert summary["cells_run"] == ["d0-seed0", "d10-seed0"] and summary["bootstrap"] == f"{source} (and none: GCSL)"
     results = {v: json.load(open(os.path.join(out, "results", f"{v}-seed0.json"))) for v in ("d0", "d10")}
     for v, r in results.items():
         assert r["config"]["total_trajectories"] == 32 and r["config"]["demos"] == int(v[1:])
@@ -109,7 +110,7 @@ def test_tiny_demos_ablation_end_to_end_resumes_and_skips(tmp_path):
         assert r["curve"] and r["curve"][-1]["trajectories"] >= 32 and r["wall_s"] > 0
     # the table holds each cell's numbers (one seed: the value, no interval)
     table = open(os.path.join(out, "table.md")).read()
-    assert "Bootstrap: scripted (and none: GCSL)" in table
+    assert f"bootstrap: {source} (and none: GCSL)" in table.splitlines()[0]
     for v, r in results.items():
         f = r["final"]
         row = f"| {v} | 1 | " + " | ".join(
