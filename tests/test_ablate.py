@@ -134,3 +134,9 @@ def test_tiny_demos_ablation_end_to_end_resumes_and_skips(tmp_path):
     with pytest.raises(SystemExit) as e, contextlib.redirect_stderr(io.StringIO()) as err:
         cli.main(["ablate", *argv[:-4], "--trajectories", "64", "--out", out])
     assert e.value.code == 2 and "different config (fields ['total_trajectories'])" in err.getvalue()
+
+
+def test_t_table_agrees_with_scipy_where_installed():
+    stats = pytest.importorskip("scipy.stats")
+    for df, t in report.T975.items():
+        assert abs(stats.t.ppf(0.975, df) - t) < 1e-4, df
