@@ -76,6 +76,12 @@ def cases():
         ("robot run --policy {empty} --station fake --goals five", "--stale-ms", ["0", "-5", "nan"]),
         ("robot run --policy {empty} --station fake --goals five", "--out", ["{file}", "{tmp}"]),
         ("robot run --policy {empty} --station sim --goals five", "--distribution", ["wide"]),
+        ("ablate", "", ["nope", ""]), ("ablate demos", "--seeds", ["0", "-1", "abc"]),
+        ("ablate demos", "--scale", ["huge", "gpu"]), ("ablate demos --scale tiny", "--trajectories", ["0", "-5"]),
+        ("ablate demos --scale tiny", "--cells", ["nope", "0:99", "3:1", "", ":", "d10,x"]),
+        ("ablate noise --scale tiny --plan", "--cells", ["d10", "20"]),
+        ("ablate demos --scale tiny", "--out", ["{file}"]),
+        ("ablate demos --scale tiny --out {empty}", "--report", ["--report"]),     # nothing finished yet
         ("robot bench", "--hidden", ["0"]), ("robot bench", "--layers", ["0"]), ("robot bench", "--members", ["0"]),
         ("robot bench", "--steps", ["0"]), ("robot bench", "--threads", ["0"]), ("robot bench", "--kind", ["gru"]),
         ("robot bench", "--engine", ["torch"]), ("robot bench", "--obs-size", ["14"]), ("robot bench", "--frame-stack", ["0"]),
