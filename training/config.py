@@ -6,6 +6,7 @@ import math
 from typing import Literal
 
 PRACTICE_KEEP = ("hits", "near_half")
+NOISE_FORMS = ("offset", "integrating")    # how action noise is applied (training.practice)
 # Practice goals farther than this beyond the table's edges (m) are not goals a return can aim at
 # (the opponent's half is 1.37 m deep and 1.525 m wide).
 MAX_GOAL_MARGIN = 1.0
@@ -37,6 +38,9 @@ class TrainConfig:
     # goal_margin of the opponent's half (this project's filter before issue #11).
     practice_keep: Literal[PRACTICE_KEEP] = "hits"
     action_noise: float = 0.0            # b of the per-episode uniform action noise
+    # How it is applied (models.policy): "offset", a calibration offset the policy cannot see;
+    # "integrating", the withdrawn a + z that the closed loop integrates (issue #11).
+    action_noise_form: Literal[NOISE_FORMS] = "offset"
     # The acting policy is an exponential moving average of the trained weights with this
     # decay per update (0: the weights themselves).
     ema_decay: float = 0.0
@@ -58,6 +62,8 @@ class TrainConfig:
         if not 0.0 <= self.practice_goal_margin <= MAX_GOAL_MARGIN:
             raise ValueError(f"TrainConfig.practice_goal_margin={self.practice_goal_margin}, expected metres "
                              f"in [0, {MAX_GOAL_MARGIN}] beyond the table's edges")
+        if self.action_noise_form not in NOISE_FORMS:
+            raise ValueError(f"TrainConfig.action_noise_form={self.action_noise_form!r}, expected one of {NOISE_FORMS}")
         if self.practice_keep not in PRACTICE_KEEP:
             raise ValueError(f"TrainConfig.practice_keep={self.practice_keep!r}, expected one of {PRACTICE_KEEP}")
         if not 0.0 <= self.demo_fraction <= 1.0:

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from models.config import PolicyConfig
-from models.policy import make_policy, with_action_noise
+from models.policy import make_policy, with_action_noise, with_integrating_action_noise
 from training.cache import Cache, add_episodes
 from training.config import TrainConfig
 from training.mesh import Layout, single_device
@@ -53,9 +53,13 @@ class RoundParts(NamedTuple):
 
 
 def practice_policy(pcfg: PolicyConfig, tcfg: TrainConfig):
-    """The rollout policy of practice: the member's policy plus held-per-episode action noise."""
+    """The rollout policy of practice: the member's policy plus held-per-episode action noise
+    (TrainConfig.action_noise_form)."""
     base = make_policy(pcfg)
-    return with_action_noise(base, tcfg.action_noise) if tcfg.action_noise > 0 else base
+    if tcfg.action_noise <= 0:
+        return base
+    noisy = with_action_noise if tcfg.action_noise_form == "offset" else with_integrating_action_noise
+    return noisy(base, tcfg.action_noise)
 
 
 def practice_stats(traj: Trajectories, kept_before, kept_after) -> PracticeStats:
