@@ -58,6 +58,20 @@ def test_oracle_is_the_striker_of_before_bit_for_bit(tmp_path):
     assert demos.source_name("scripted") == "oracle"
 
 
+def test_configurations_saved_with_scripted_load_as_oracle():
+    """A checkpoint's config from before the rename ("scripted") means today's "oracle"."""
+    import json
+    import os
+    from training.runconfig import RunConfig, from_json
+    path = os.path.join(os.path.dirname(__file__), "data", "tiny_run_v0", "checkpoints", "6", "config", "metadata")
+    with open(path) as f:
+        saved = json.load(f)
+    assert saved["demo_source"] == "scripted" and from_json(saved).demo_source == "oracle"
+    assert RunConfig().demo_source == "paper"
+    with pytest.raises(ValueError, match="demo_source='human'"):
+        RunConfig(demo_source="human")
+
+
 def test_paper_and_es_give_valid_demonstrations(paper, tmp_path):
     """Both round-trip through the dataset format; the narrow striker and the shipped ES policy
     hit >= 90% of narrow throws (the ES policy returns none: it learned to block)."""

@@ -66,6 +66,8 @@ class RunConfig:
         for name in ("demos", "pretrain_steps", "total_trajectories"):
             if getattr(self, name) < 0:
                 raise ValueError(f"RunConfig.{name}={getattr(self, name)}, expected >= 0")
+        if self.demo_source not in ("paper", "es", "oracle"):
+            raise ValueError(f"RunConfig.demo_source={self.demo_source!r}, expected 'paper', 'es' or 'oracle'")
         if self.devices is not None and self.devices < 1:
             raise ValueError(f"RunConfig.devices={self.devices}, expected >= 1 or None (all)")
         if self.demos == 0 and not self.practice:

@@ -260,7 +260,7 @@ def plot_coverage(traj: record.Trajectories, meta: dict, path: str) -> str:
     source = meta.get("source", "?")
     ax.set_title(f"{SOURCE_LABELS.get(LEGACY.get(source, source), source)}\n"
                  f"{meta.get('distribution')} throws, n={traj.size}", fontsize=10)
-    ax.legend(loc="lower left", fontsize=7)
+    ax.legend(loc="upper left", fontsize=7)
     ax.set_xlabel("-y (m)"), ax.set_ylabel("x (m)")
     s = summary(traj, cfg)
     rows = [("hit", f"{s['hit_rate']:.1%}"), ("on opponent's half", f"{s['return_rate']:.1%}"),
