@@ -57,7 +57,7 @@ def main(processes: int, local_devices: int) -> None:
     from ttmjx.world import record
     tmp = tempfile.mkdtemp(prefix="multihost_check_")
     demo_dir = f"{tmp}/demos"   # collected once here: the processes would write the same files
-    record.save(demo_dir, demos.collect(runconfig.tiny().world, "scripted", 200, seed=5), {"source": "scripted"})
+    record.save(demo_dir, demos.collect(runconfig.tiny().world, "oracle", 200, seed=5), {"source": "oracle"})
     launch(f"{tmp}/processes", demo_dir, processes, local_devices)
     launch(f"{tmp}/one", demo_dir, 1, processes * local_devices)
     out = {"processes": processes, "devices_per_process": local_devices, "dir": tmp,

@@ -29,7 +29,7 @@ def main():
     root = a.out or tempfile.mkdtemp(prefix="resume_check_")
     cfg0 = runconfig.tiny()
     demo_dir = os.path.join(root, "demos")
-    record.save(demo_dir, demos.collect(cfg0.world, "scripted", cfg0.demos, seed=5), {"source": "scripted"})
+    record.save(demo_dir, demos.collect(cfg0.world, "oracle", cfg0.demos, seed=5), {"source": "oracle"})
     base = dataclasses.replace(cfg0, backend=a.backend, demo_dir=demo_dir)
     full, split = (dataclasses.replace(base, run_dir=os.path.join(root, n)) for n in ("full", "split"))
     Run(full, evaluate=training_evaluation(full), progress=False).run()

@@ -130,12 +130,12 @@ def worker(out_path: str, demo_dir: str, tmp: str) -> None:
 # -- the tests (this process: one device) -----------------------------------------------------
 @pytest.fixture(scope="module")
 def demo_dir(tmp_path_factory):
-    """tiny's 200 scripted narrow demonstrations (those of tests/data/before_renovation.json)."""
+    """tiny's 200 oracle (goal-directed striker) narrow demonstrations (those of tests/data/before_renovation.json)."""
     from training import runconfig
     from ttmjx.tools import demos
     from ttmjx.world import record
     d = str(tmp_path_factory.mktemp("demos"))
-    record.save(d, demos.collect(runconfig.tiny().world, "scripted", 200, seed=5), {"source": "scripted"})
+    record.save(d, demos.collect(runconfig.tiny().world, "oracle", 200, seed=5), {"source": "oracle"})
     return d
 
 

@@ -26,11 +26,11 @@ BEFORE = json.load(open(os.path.join(DATA, "before_renovation.json")))
 
 @pytest.fixture(scope="module")
 def demo_dir(tmp_path_factory):
-    """200 scripted narrow demonstrations, collected once for the module."""
+    """200 oracle (goal-directed striker) narrow demonstrations, collected once for the module."""
     d = str(tmp_path_factory.mktemp("demos"))
     cfg = runconfig.tiny()
-    traj = demos.collect(cfg.world, "scripted", 200, seed=5)
-    record.save(d, traj, {"source": "scripted", "distribution": "narrow", "seed": 5})
+    traj = demos.collect(cfg.world, "oracle", 200, seed=5)
+    record.save(d, traj, {"source": "oracle", "distribution": "narrow", "seed": 5})
     return d
 
 
@@ -44,7 +44,8 @@ RECORDED_PRACTICE = {"practice_goal_margin": 0.0, "practice_keep": "near_half", 
 def tiny(demo_dir, run_dir, **kw):
     base = runconfig.tiny()
     kw.setdefault("train", dataclasses.replace(base.train, **RECORDED_PRACTICE))
-    return dataclasses.replace(base, demo_dir=demo_dir, run_dir=str(run_dir), **kw)
+    # the demonstrations are the oracle's (as before issue 11): the config says so
+    return dataclasses.replace(base, demo_dir=demo_dir, demo_source="oracle", run_dir=str(run_dir), **kw)
 
 
 def final_params(run_dir):

@@ -23,8 +23,10 @@ class RunConfig:
     train: TrainConfig = TrainConfig()
     demos: int = 1000
     """Bootstrap demonstrations (0 = GCSL)."""
-    demo_source: Literal["scripted", "es"] = "scripted"
-    """Bootstrap demonstrator: the scripted striker or the ES policy (ttmjx demos --source)."""
+    demo_source: Literal["paper", "es", "oracle"] = "paper"
+    """Bootstrap demonstrator (ttmjx demos --source; ttmjx/tools/demos.py): paper (the paper's: a
+    narrow striker aimed at one point, 4 joints perturbed per episode), es (the ES policy, the same
+    perturbation) or oracle (the goal-directed striker: an upper bound, not the paper's setting)."""
     demo_dir: str | None = None
     """Use this dataset (ttmjx demos --out) instead of collecting demonstrations."""
     data: tuple[str, ...] = ()
@@ -64,6 +66,8 @@ class RunConfig:
         for name in ("demos", "pretrain_steps", "total_trajectories"):
             if getattr(self, name) < 0:
                 raise ValueError(f"RunConfig.{name}={getattr(self, name)}, expected >= 0")
+        if self.demo_source not in ("paper", "es", "oracle"):
+            raise ValueError(f"RunConfig.demo_source={self.demo_source!r}, expected 'paper', 'es' or 'oracle'")
         if self.devices is not None and self.devices < 1:
             raise ValueError(f"RunConfig.devices={self.devices}, expected >= 1 or None (all)")
         if self.demos == 0 and not self.practice:
@@ -183,6 +187,10 @@ def from_json(d: dict) -> RunConfig:
     d["policy"] = PolicyConfig(**d["policy"])
     d["train"] = TrainConfig(**d["train"])
     d["data"] = tuple(d.get("data", ()))
+    # Configurations saved before issue 11 say "scripted": the goal-directed striker, now "oracle".
+    from ttmjx.tools.demos import LEGACY
+    if "demo_source" in d:
+        d["demo_source"] = LEGACY.get(d["demo_source"], d["demo_source"])
     return RunConfig(**d)
 
 

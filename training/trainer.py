@@ -28,6 +28,7 @@ from training.checkpoint import Checkpointed, Counters
 from training.practice import Practice
 from training.runconfig import RunConfig, to_json
 from training.update import acting_params, init_train_state
+from ttmjx.tools.demos import LEGACY
 from ttmjx.world import files
 from ttmjx.world.backends import Backend, resolve_backend
 
@@ -189,6 +190,8 @@ class Run:
     def check_same_config(self, saved: dict):
         """ValueError if `saved` (a run's config) computes differently from this run's."""
         mine = to_json(self.cfg)
+        if "demo_source" in saved:   # an old name ("scripted") means today's "oracle"
+            saved = {**saved, "demo_source": LEGACY.get(saved["demo_source"], saved["demo_source"])}
         diff = {k for k in set(saved) | set(mine) if saved and saved.get(k) != mine.get(k) and k not in RESUME_MAY_CHANGE}
         if diff:
             raise ValueError(f"{self.cfg.run_dir} holds a run with a different config (fields {sorted(diff)}); "

@@ -158,11 +158,14 @@ class SimArgs(WorldArgs):
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class DemosArgs(WorldArgs):
-    """Collect bootstrap demonstrations into a new dataset directory (docs/DATA.md)."""
+    """Collect bootstrap demonstrations into a new dataset directory with its landing-coverage
+    figure DIR/coverage.png (docs/DATA.md)."""
     BOUNDS: ClassVar[dict] = {"n": (1, batch_limit)}
     NEW_DIRS: ClassVar[tuple] = ("out",)
-    source: Literal["scripted", "es"] = "scripted"
-    """Demonstrator: the scripted striker or the ES policy."""
+    source: Literal["paper", "es", "oracle", "scripted"] = "paper"
+    """Demonstrator: paper (the paper's bootstrap: a narrow striker aimed at one point, 4 joints
+    perturbed per episode), es (the ES policy, same perturbation), oracle (the goal-directed
+    striker: an UPPER BOUND, not the paper's setting; 'scripted' is its old name)."""
     n: int = 1000
     """Number of episodes."""
     seed: int = 0
@@ -371,7 +374,7 @@ def demos(a: DemosArgs) -> None:
     from ttmjx.tools import demos as demonstrations
     out = demonstrations.make_dataset(a.world(), a.source, a.n, a.seed, a.out, a.backend,
                                       progress=not a.json)
-    report(a, out, f"{table(out)}\nwrote {a.out}")
+    report(a, out, f"{table(out)}\nwrote {a.out} (and {os.path.join(a.out, 'coverage.png')})")
 
 
 def plot_landings(a: PlotArgs) -> None:

@@ -1,23 +1,131 @@
-"""Bootstrap demonstrations: non-goal-directed hits collected in the world, one dataset format.
+"""Bootstrap demonstrations: hits collected in the world, one dataset format.
 
-Sources: `scripted` (ttmjx/tools/striker.py, the default) and `es` (an evolution-strategies policy,
-ttmjx/tools/es.py). The goal in the observations is a placeholder (zeros): demonstrations are not
-goal-directed; the trainer relabels them with where each ball landed.
+Sources (`SOURCES`, `ttmjx demos --source`, `RunConfig.demo_source`):
+
+- `paper` (the default): the paper's bootstrap ("Building up the initial bootstrap dataset"): a
+  NARROW, non-goal-directed returner (the scripted striker, ttmjx/tools/striker.py, aimed at one
+  fixed point, `PAPER_TARGET`) whose commands on 4 of the 8 joints carry a random offset held
+  through the episode (`Perturbation`), so that the landings cover the opponent's half thinly.
+- `es`: the evolution-strategies policy (ttmjx/tools/es.py, shipped weights) with the same
+  perturbation; as the paper's ES policy, narrow (it learned to block: it returns no ball).
+- `oracle`: the goal-directed striker aiming every return at a random target of the half. Its
+  landings are its own targets (98% within 30 cm), so imitating it is nearly goal reaching: an
+  UPPER BOUND, not the paper's bootstrap. Named `scripted` before (still accepted, `LEGACY`).
+
+The goal in the observations is a placeholder (zeros): no source sees a goal; the trainer
+relabels each demonstration with where its ball landed.
 """
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ttmjx.world import backends, record, thrower
-from ttmjx.world.config import World, opponent_half
+from ttmjx.world.config import JOINT_NAMES, World, opponent_half
 
-SOURCES = ("scripted", "es")
+SOURCES = ("paper", "es", "oracle")
+LEGACY = {"scripted": "oracle"}   # old names of sources (datasets, config.json, scripts)
 COVERAGE_GRID = (6, 4)  # cells along the table's length (x) and width (y) of the opponent's half
+COVER_RADIUS = 0.3      # m: the paper's looser success radius; "area within 30 cm of a landing"
+
+
+def source_name(source: str) -> str:
+    """The current name of a source (old names mapped, `LEGACY`); ValueError for unknown ones."""
+    source = LEGACY.get(source, source)
+    if source not in SOURCES:
+        raise ValueError(f"unknown demonstration source {source!r}; expected one of {SOURCES}")
+    return source
+
+
+@dataclasses.dataclass(frozen=True)
+class Perturbation:
+    """"Perturb 4 of the 8 robot joint angles" (paper, "Building up the initial bootstrap
+    dataset"): per episode, a constant offset uniform in +-`offset[i]` is added to the command of
+    joint `joints[i]` (JOINT_NAMES order) for the whole episode. The paper names neither the
+    joints nor the sizes; the defaults come from what the landings do, never from a learning
+    result (docs/DATA.md, "Bootstrap sources"):
+
+    - joints: four arm joints that turn the blade's face, j1 (base yaw), j2 (shoulder pitch), j5
+      (wrist pitch) and j6 (the blade's roll about the extension). Measured on 48 narrow throws,
+      0.05 rad on j1 moves the landing 0.18 m across the table; on j2 0.19 m along it; on j5
+      and j6 0.15-0.18 m obliquely: together they spread the landings both ways. The gantry (a
+      translation, 2.5 m of landing per m) and j4 (0.04 m per 0.05 rad) matter less; j3 acts
+      as j2.
+    - offset (rad, half-widths of the uniform draw): scaled as one vector (0.75x, 1x, 1.25x of
+      the default, 200 narrow throws each) for the landings on the opponent's half to spread
+      like goals uniform on it (std 0.40 m along x, 0.44 m across) while most balls still land
+      there. At 1x: std 0.22 m along, 0.35 m across (unperturbed: 0.06 and 0.01), 84% on the
+      half, 95% of its area within 30 cm of a landing; 0.75x: 0.18 / 0.29 m, 93%; 1.25x: 0.22 /
+      0.39 m but 65% (more balls into the net and long; more offset on j2 alone, 0.16 rad, did
+      not widen the spread along x either: 0.23 m, 72% on the half). Landings along x are bounded
+      by the net and the far edge, so their spread stays below the uniform goals'.
+    """
+    joints: tuple = (2, 3, 6, 7)
+    offset: tuple = (0.15, 0.12, 0.08, 0.08)
+
+    def __post_init__(self):
+        if len(set(self.joints)) != len(self.joints) or not all(0 <= j < 8 for j in self.joints):
+            raise ValueError(f"Perturbation.joints={self.joints}: expected distinct joint indices in 0..7 "
+                             f"({JOINT_NAMES})")
+        if len(self.offset) != len(self.joints) or not all(o >= 0 for o in self.offset):
+            raise ValueError(f"Perturbation.offset={self.offset}: expected one half-width >= 0 per joint "
+                             f"of {self.joints}")
+
+    def draw(self, key) -> jax.Array:
+        """[8] one episode's command offsets: zero off `joints`."""
+        u = jax.random.uniform(key, (len(self.joints),), minval=-1.0, maxval=1.0)
+        return jnp.zeros(8).at[jnp.array(self.joints)].set(u * jnp.array(self.offset))
+
+
+def perturbed(policy: backends.Policy, pert: Perturbation) -> backends.Policy:
+    """`policy` with `pert`'s per-episode offset added to every command it sends. The offset is
+    drawn at the episode's start and carried; the environment clips the result (ranges, speed)."""
+    def init(params, key):
+        k_policy, k_offset = jax.random.split(key)
+        return policy.init(params, k_policy), pert.draw(k_offset)
+
+    def apply(params, carry, obs, key):
+        inner, offset = carry
+        inner, action = policy.apply(params, inner, obs, key)
+        return (inner, offset), action + offset
+    return backends.Policy(init=init, apply=apply)
+
+
+def paper_target(cfg: World) -> tuple[float, float]:
+    """The `paper` source's one aim point: the centre of the opponent's half, so that a
+    symmetric perturbation spreads the landings over the whole half (the paper's ES policy
+    aimed near the net on one side; its data were then shifted to cover the table)."""
+    return cfg.table.half_length / 2, 0.0
+
+
+def narrow_striker(cfg: World):
+    """The striker for the `paper` source: `striker.imitable()` aimed at `paper_target` on every
+    throw, with its own per-episode joint offsets and posture draws off (the `Perturbation`
+    wrapper is the only one)."""
+    from ttmjx.tools import striker
+    x, y = paper_target(cfg)
+    return dataclasses.replace(striker.imitable(), target_x=(x, x), target_y=(y, y), perturb_joints=0)
+
+
+def source_policy(cfg: World, source: str, params_dir: str | None = None,
+                  pert: Perturbation = Perturbation()):
+    """(Policy, params) of a demonstration source (`SOURCES`; old names accepted)."""
+    source = source_name(source)
+    if source == "oracle":
+        from ttmjx.tools import striker
+        return striker.striker_policy(cfg, striker.imitable()), None
+    if source == "paper":
+        from ttmjx.tools import striker
+        return perturbed(striker.striker_policy(cfg, narrow_striker(cfg)), pert), None
+    from ttmjx.tools import es
+    policy, params = es.load_policy(cfg, params_dir)
+    return perturbed(policy, pert), params
 
 
 def coverage(landing, on_opponent, table, grid=COVERAGE_GRID) -> float:
@@ -32,22 +140,34 @@ def coverage(landing, on_opponent, table, grid=COVERAGE_GRID) -> float:
     return len(set(zip(ix.tolist(), iy.tolist()))) / (grid[0] * grid[1])
 
 
+def area_within(landing, on_opponent, table, radius: float = COVER_RADIUS, cell: float = 0.02) -> float:
+    """Fraction of the opponent's half's area within `radius` (m) of some landing on it (a
+    goal there has a demonstration that landed within the success radius), on a `cell` grid.
+    landing [B, 2], on_opponent [B] bool."""
+    (x0, x1), (y0, y1) = opponent_half(table)
+    pts = np.asarray(landing, np.float64)[np.asarray(on_opponent, bool)]
+    if len(pts) == 0:
+        return 0.0
+    gx, gy = np.meshgrid(np.arange(x0 + cell / 2, x1, cell), np.arange(y0 + cell / 2, y1, cell))
+    grid = np.stack([gx.ravel(), gy.ravel()], 1)
+    near = np.zeros(len(grid), bool)
+    for start in range(0, len(pts), 256):     # [G, 256] distances at a time: bounded memory
+        d2 = ((grid[:, None, :] - pts[None, start:start + 256]) ** 2).sum(-1)
+        near |= (d2 <= radius**2).any(1)
+    return float(near.mean())
+
+
 def summary(traj: record.Trajectories, cfg: World) -> dict:
-    """{"n", "hit_rate", "return_rate", "coverage"} of a record."""
-    return {"n": traj.size, "hit_rate": float(np.mean(traj.hit)),
-            "return_rate": float(np.mean(traj.on_opponent)),
-            "coverage": coverage(traj.landing, traj.on_opponent, cfg.table)}
-
-
-def source_policy(cfg: World, source: str, params_dir: str | None = None):
-    """(Policy, params) of a demonstration source."""
-    if source == "scripted":
-        from ttmjx.tools import striker
-        return striker.striker_policy(cfg, striker.imitable()), None
-    if source == "es":
-        from ttmjx.tools import es
-        return es.load_policy(cfg, params_dir)
-    raise ValueError(f"unknown demonstration source {source!r}; expected one of {SOURCES}")
+    """Rates and spread of a record's landings: hit rate, return rate (first bounce after the
+    hit on the opponent's half), `coverage` (6 x 4 grid cells reached), `area_within_30cm`
+    (`area_within`) and the std (m) of the landings on the half along x and y."""
+    on = np.asarray(traj.on_opponent, bool)
+    land = np.asarray(traj.landing)[on]
+    std = land.std(0) if len(land) > 1 else np.zeros(2)
+    return {"n": traj.size, "hit_rate": float(np.mean(traj.hit)), "return_rate": float(np.mean(on)),
+            "coverage": coverage(traj.landing, on, cfg.table),
+            "area_within_30cm": area_within(traj.landing, on, cfg.table),
+            "landing_std_x": float(std[0]), "landing_std_y": float(std[1])}
 
 
 def collect(cfg: World, source: str, n: int, seed: int, backend: str = "c", chunk: int | None = None,
@@ -88,53 +208,80 @@ def code_version() -> str:
 
 def make_dataset(cfg: World, source: str, n: int, seed: int, out: str, backend: str = "c",
                  progress: bool = True) -> dict:
-    """Collect and write a dataset to `out` (refuses to overwrite); returns the JSON summary."""
+    """Collect and write a dataset to `out` (refuses to overwrite) with its landing-coverage
+    figure `out/coverage.png`; returns the JSON summary."""
     import os
     from ttmjx.world.config import to_dict
     if os.path.exists(os.path.join(out, "trajectories.npz")):
         raise FileExistsError(f"{out} already holds a dataset; refusing to overwrite it")
+    source = source_name(source)
     t0 = time.perf_counter()
     traj = collect(cfg, source, n, seed, backend, progress=progress)
     seconds = time.perf_counter() - t0
     summ = summary(traj, cfg)
-    record.save(out, traj, {"source": source, "distribution": cfg.throws.name, "seed": seed,
-                            "backend": backend, "code_version": code_version(), "seconds": seconds,
-                            "counts": {"hit": int(np.sum(traj.hit)), "returned": int(np.sum(traj.on_opponent))},
-                            **{k: v for k, v in summ.items() if k != "n"}, "world": to_dict(cfg)})
+    meta = {"source": source, "distribution": cfg.throws.name, "seed": seed,
+            "backend": backend, "code_version": code_version(), "seconds": seconds,
+            "counts": {"hit": int(np.sum(traj.hit)), "returned": int(np.sum(traj.on_opponent))},
+            **{k: v for k, v in summ.items() if k != "n"}, "world": to_dict(cfg)}
+    record.save(out, traj, meta)
+    plot_coverage(traj, meta, os.path.join(out, "coverage.png"))
     return {**summ, "seconds": seconds}
 
 
-def plot_landings(directory: str, path: str | None = None) -> str:
-    """Draw a dataset's landing points over the table (like the paper's Figure 3); PNG path."""
+SOURCE_LABELS = {"paper": "paper: narrow striker, 4 joints perturbed",
+                 "es": "es: ES policy, 4 joints perturbed",
+                 "oracle": "oracle: goal-directed striker (upper bound)"}
+
+
+def plot_coverage(traj: record.Trajectories, meta: dict, path: str) -> str:
+    """Draw a record's landings over the table, the opponent's half outlined, with the summary
+    table (`summary`) beside them (like the paper's Figure 3); writes the PNG at `path`."""
+    import io
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import os
-    from ttmjx.world.config import Table
-    traj, meta = record.load(directory)
-    t = Table()
-    fig, ax = plt.subplots(figsize=(5, 7))
+    from ttmjx.world import files
+    cfg = _world_of(meta)
+    t = cfg.table
+    fig, ax = plt.subplots(figsize=(7.5, 6))
     ax.add_patch(plt.Rectangle((-t.half_width, -t.half_length), t.width, t.length, color="#1f4e8c"))
     ax.plot([-t.half_width, t.half_width], [0, 0], color="white", lw=3)              # net
     ax.plot([0, 0], [-t.half_length, t.half_length], color="white", lw=0.8)          # centre line
     ax.add_patch(plt.Rectangle((-t.half_width, -t.half_length), t.width, t.length, fill=False, ec="white", lw=2))
+    ax.add_patch(plt.Rectangle((-t.half_width, 0), t.width, t.half_length, fill=False, ec="gold", lw=2.5,
+                               label="opponent's half"))
     land = np.asarray(traj.landing)
     ok = np.isfinite(land[:, 0])
     on = np.asarray(traj.on_opponent, bool)
     # Drawn from the robot's side: the opponent's half (x > 0) at the top, y to the left.
-    ax.scatter(-land[ok & on, 1], land[ok & on, 0], s=6, c="orange", label="landed on opponent's half")
-    ax.scatter(-land[ok & ~on, 1], land[ok & ~on, 0], s=6, c="red", alpha=0.5, label="missed")
+    ax.scatter(-land[ok & on, 1], land[ok & on, 0], s=5, c="orange", label="landed on the opponent's half")
+    ax.scatter(-land[ok & ~on, 1], land[ok & ~on, 0], s=5, c="red", alpha=0.5, label="elsewhere")
     ax.set_xlim(-1.3, 1.3), ax.set_ylim(-1.6, 2.2), ax.set_aspect("equal")
-    summ = summary(traj, _world_of(meta))
-    ax.set_title(f"{meta.get('source')} / {meta.get('distribution')}: n={traj.size}\n"
-                 f"hit {summ['hit_rate']:.0%}, returned {summ['return_rate']:.0%}, "
-                 f"coverage {summ['coverage']:.0%}")
-    ax.legend(loc="lower left", fontsize=7)
+    source = meta.get("source", "?")
+    ax.set_title(f"{SOURCE_LABELS.get(LEGACY.get(source, source), source)}\n"
+                 f"{meta.get('distribution')} throws, n={traj.size}", fontsize=10)
+    ax.legend(loc="upper left", fontsize=7)
     ax.set_xlabel("-y (m)"), ax.set_ylabel("x (m)")
-    path = path or os.path.join(directory, "landings.png")
-    fig.savefig(path, dpi=120, bbox_inches="tight")
+    s = summary(traj, cfg)
+    rows = [("hit", f"{s['hit_rate']:.1%}"), ("on opponent's half", f"{s['return_rate']:.1%}"),
+            ("half's area within 30 cm", f"{s['area_within_30cm']:.1%}"),
+            ("6 x 4 cells reached", f"{s['coverage']:.0%}"),
+            ("landing std x / y", f"{s['landing_std_x']:.2f} / {s['landing_std_y']:.2f} m")]
+    tab = ax.table(cellText=[[v] for _, v in rows], rowLabels=[k for k, _ in rows], colWidths=[0.32],
+                   bbox=[1.55, 0.55, 0.45, 0.4])
+    tab.set_fontsize(8)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
     plt.close(fig)
+    files.write_bytes(path, buf.getvalue())
     return path
+
+
+def plot_landings(directory: str, path: str | None = None) -> str:
+    """`plot_coverage` of a dataset directory; PNG path (default DIR/landings.png)."""
+    import os
+    traj, meta = record.load(directory)
+    return plot_coverage(traj, meta, path or os.path.join(directory, "landings.png"))
 
 
 def _world_of(meta: dict) -> World:

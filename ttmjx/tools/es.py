@@ -1,7 +1,8 @@
 """The `es` demonstration source: an evolution-strategies policy trained in simulation on a
 shaped reward (paper, "Building up the initial bootstrap dataset": a standard ES policy trained
 fully in simulation, used to bootstrap demonstrations; it was "narrow"). A second source and a
-baseline; the default source is the scripted striker (ttmjx/tools/striker.py).
+baseline, wrapped with the same 4-joint perturbation as the default `paper` source
+(ttmjx/tools/demos.py).
 
 The algorithm is the standard OpenAI-ES (Salimans et al. 2017, "Evolution Strategies as a
 Scalable Alternative to Reinforcement Learning"): Gaussian perturbations of the parameter mean
