@@ -1,6 +1,6 @@
 """Export a trained policy for the robot, and load it back (numpy only) with every check.
 
-An export is a directory of three files, nothing pickled:
+An export is a directory of four or five files, nothing pickled:
 
   weights.safetensors  float32 tensors named by their flattened parameter paths, each with a
                        leading member axis [N, ...] (N = 1 for one member):
@@ -15,17 +15,25 @@ An export is a directory of three files, nothing pickled:
                        the observation layout (ttmjx.world.observation) and order; the goal
                        frame and units; the policy type, sizes, recurrent state shape and
                        ensemble rule; the normalization; the source checkpoint; the SHA-256 of
-                       both .safetensors files and the shape of every tensor; the World config
-                       the policy was trained in.
+                       both .safetensors files and the shape of every tensor; the ONNX graph's
+                       inputs and outputs; the World config the policy was trained in.
+  policy.onnx          (when the optional `onnx` package is installed, or asked for) one step of
+                       the policy as an ONNX graph, normalization and the ensemble mean included
+                       (deploy/onnx_policy.py); checked on the golden frames when written
+  manifest.json        written last: `format`, `format_version` (2) and the SHA-256 and size of
+                       every other file in the directory, the contract included
 
 `export_checkpoint(path, out_dir)` exports a training checkpoint (opened by the one loader,
 training.checkpoint.load_checkpoint: the configuration saved with it, never guessed);
 `export(params, pcfg, world, out_dir)` exports parameters in hand. Both compute the golden
 actions with models.make_policy (JAX). `load_export(dir)` (numpy only: this module imports JAX
 lazily, inside export functions) refuses a tampered or mismatched export with an ExportError
-naming the problem: a hash that does not match, tensors of the wrong names/shapes/dtypes, a
+naming the problem: no manifest (exports of format version 1 had none: they are refused, to be
+exported again, since a manifest that could be deleted would protect nothing), a file missing
+from or absent in the manifest, a hash that does not match, tensors of the wrong names/shapes/dtypes, a
 contract for another robot (model id, joint names, limits wider than the robot's), or a golden
 self-test whose numpy actions differ from the stored JAX actions by more than 1e-5.
+`load_onnx_export(dir)` makes the same checks and serves policy.onnx on onnxruntime instead.
 
 Ensembles: `ensemble=True` exports every member; the numpy policy steps each member with its
 own state and normalizer and sends the MEAN of their actions (deploy/numpy_policy.py).
@@ -44,14 +52,19 @@ import numpy as np
 from deploy.contract import (REAL_OBS_SIZE, ROBOT_MODEL_ID, Contract, contract_from_dict,
                              contract_to_dict)
 from deploy.numpy_policy import ACTION_SIZE, NORM_FIELDS, ExportedPolicy, PolicySpec, check_tensors
+from deploy.onnx_policy import (INPUTS, IR_VERSION, OPSET, OUTPUTS, MissingExtra, OnnxPolicy,
+                                import_onnxruntime, model_bytes, reference_session, session)
 from ttmjx.world import files, observation
 from ttmjx.world.config import JOINT_NAMES, Robot, Table, World, opponent_half, to_dict
 
 EXPORT_FORMAT = "ttmjx-policy-export"
-EXPORT_VERSION = 1
+EXPORT_VERSION = 2         # 2: manifest.json hashes every file; optional policy.onnx
 WEIGHTS_FILE = "weights.safetensors"
 GOLDEN_FILE = "golden.safetensors"
 CONTRACT_FILE = "contract.json"
+ONNX_FILE = "policy.onnx"
+MANIFEST_FILE = "manifest.json"
+REQUIRED_FILES = (CONTRACT_FILE, WEIGHTS_FILE, GOLDEN_FILE)
 GOLDEN_TOL = 1e-5          # max |numpy - JAX| over the golden actions (fixed here, not read)
 GOLDEN_STEPS = 16
 ENSEMBLE_RULE = ("mean of the members' actions (absolute joint targets, after each member's own "
@@ -84,14 +97,14 @@ def _save_tensors(path: str, tensors: dict, metadata: dict) -> bytes:
     return data
 
 
-def _read_tensors(directory: str, name: str, sha256: str) -> dict:
-    """Read a .safetensors file once, check its SHA-256, then parse those same bytes."""
+def _parse_tensors(directory: str, files: dict, name: str, sha256: str) -> dict:
+    """Parse a .safetensors file from the bytes the manifest check read (files: name ->
+    bytes), after checking them against the contract's SHA-256 too."""
     from safetensors.numpy import load
     path = os.path.join(directory, name)
-    if not os.path.isfile(path):
-        raise ExportError(f"{path}: missing (an incomplete export?)")
-    with open(path, "rb") as f:
-        data = f.read()
+    if name not in files:
+        raise ExportError(f"{path}: named by the contract but not in {MANIFEST_FILE}")
+    data = files[name]
     got = sha256_bytes(data)
     if got != sha256:
         raise ExportError(f"{path}: SHA-256 {got} does not match the contract's {sha256}: the file "
@@ -276,7 +289,7 @@ def runtime_contract(world_cfg: World, pcfg, control_hz: float | None = None) ->
 
 
 def _refuse_existing(out_dir: str) -> None:
-    for name in (CONTRACT_FILE, WEIGHTS_FILE, GOLDEN_FILE):
+    for name in (*REQUIRED_FILES, ONNX_FILE, MANIFEST_FILE):
         if os.path.exists(os.path.join(out_dir, name)):
             raise FileExistsError(f"{os.path.join(out_dir, name)} already exists; refusing to "
                                   f"overwrite an export (choose a new --out or delete it first)")
@@ -326,8 +339,9 @@ def _file_section(name: str, data: bytes) -> dict:
 
 def contract_doc(spec: PolicySpec, tensors: dict, runtime: Contract, world_cfg: World,
                  weights: bytes, golden: bytes, golden_steps: int, seed: int, source: str,
-                 members: list) -> dict:
-    """contract.json of an export (module docstring); weights/golden: the files' bytes."""
+                 members: list, onnx_section: dict | None = None) -> dict:
+    """contract.json of an export (module docstring); weights/golden: the files' bytes;
+    onnx_section: policy.onnx's (onnx_section()), None when the export has no graph."""
     n = int(tensors["net/params/head/bias"].shape[0])
     return {
         "format": EXPORT_FORMAT, "version": EXPORT_VERSION,
@@ -345,65 +359,180 @@ def contract_doc(spec: PolicySpec, tensors: dict, runtime: Contract, world_cfg: 
                     "tensors": {k: list(v.shape) for k, v in sorted(tensors.items())}},
         "golden": {**_file_section(GOLDEN_FILE, golden), "steps": int(golden_steps),
                    "tolerance": GOLDEN_TOL, "seed": int(seed)},
+        "onnx": onnx_section,
         "source": {"checkpoint": str(source), "members": members,
                    "exported_at": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")},
         "world": to_dict(world_cfg),
     }
 
 
+def onnx_graph(spec: PolicySpec, tensors: dict, golden: dict, want: bool | None) -> tuple:
+    """(policy.onnx bytes, its contract section) or (None, None): want=None builds the graph
+    when the `onnx` package is installed, True requires it (ExportError naming the install
+    command if absent), False skips it. The graph is run on the golden frames (onnxruntime, or
+    onnx's reference evaluator without it) and refused if it differs from the JAX actions."""
+    if want is False:
+        return None, None
+    try:
+        data = model_bytes(spec, tensors, doc=f"{EXPORT_FORMAT} v{EXPORT_VERSION}: one {spec.kind} step")
+    except MissingExtra as e:
+        if want is None:
+            return None, None
+        raise ExportError(str(e)) from None
+    n = int(tensors["net/params/head/bias"].shape[0])
+    try:
+        ort = import_onnxruntime()
+        evaluator, checked = session(data), f"onnxruntime {ort.__version__}"
+    except MissingExtra:
+        evaluator, checked = reference_session(data), "onnx.reference (onnxruntime not installed)"
+    policy = OnnxPolicy(spec, n, data, evaluator=evaluator)
+    err = self_test(policy, golden, what="ONNX graph")
+    return data, onnx_section(spec, n, data, err, checked)
+
+
+def onnx_section(spec: PolicySpec, n: int, data: bytes, err: float, checked: str) -> dict:
+    """The contract's `onnx` section: the file, its opset, inputs and outputs with shapes."""
+    state = [n, spec.layers, 2, spec.hidden]
+    shapes = {"frame": [spec.obs_size], "frames": [spec.frame_stack, spec.obs_size],
+              "state": state, "state_out": state, "action": [ACTION_SIZE],
+              "member_actions": [n, ACTION_SIZE]}
+    return {**_file_section(ONNX_FILE, data), "bytes": len(data), "opset": OPSET,
+            "ir_version": IR_VERSION, "dtype": "float32",
+            "inputs": {k: shapes[k] for k in INPUTS[spec.kind]},
+            "outputs": {k: shapes[k] for k in OUTPUTS[spec.kind]},
+            "state_layout": "[member, layer, (c, h), hidden], zeros at every episode start" if spec.kind == "lstm" else None,
+            "computes": "normalization, network, denormalization and the mean over members: "
+                        "`action` equals the numpy policy's action",
+            "golden_error": err, "checked_with": checked}
+
+
+def write_manifest(out_dir: str, written: dict) -> None:
+    """manifest.json: format, format_version and SHA-256 + size of every file (name -> bytes)."""
+    doc = {"format": EXPORT_FORMAT, "format_version": EXPORT_VERSION,
+           "files": {name: {"sha256": sha256_bytes(data), "bytes": len(data)}
+                     for name, data in sorted(written.items())}}
+    files.write_json(os.path.join(out_dir, MANIFEST_FILE), doc, indent=1)
+
+
 def export(params, pcfg, world_cfg: World, out_dir: str, member: int | None = None,
            ensemble: bool = False, source: str = "", control_hz: float | None = None,
-           golden_steps: int = GOLDEN_STEPS, seed: int = 0) -> str:
+           golden_steps: int = GOLDEN_STEPS, seed: int = 0, onnx: bool | None = None) -> str:
     """Write an export of `params` (models.PolicyParams, one member or an ensemble with a leading
     [N] axis) into out_dir (created; an existing export there is an error). Returns out_dir.
 
     control_hz: the robot's control rate (default: world_cfg.control_hz, the rate the policy was
     trained at; the runner steps the policy at this rate). source: the checkpoint path.
+    onnx: write policy.onnx: None when the `onnx` package is installed, True always (an error
+    without it), False never.
     """
     _refuse_existing(out_dir)
     spec, tensors, members = export_tensors(params, pcfg, member, ensemble)
     runtime = runtime_contract(world_cfg, pcfg, control_hz)
     golden = golden_set(pcfg, tensors, runtime, world_cfg.table, golden_steps, seed)
+    graph, graph_section = onnx_graph(spec, tensors, golden, onnx)
     os.makedirs(out_dir, exist_ok=True)
     meta = {"format": EXPORT_FORMAT, "kind": spec.kind}
-    w_bytes = _save_tensors(os.path.join(out_dir, WEIGHTS_FILE), tensors, meta)
-    g_bytes = _save_tensors(os.path.join(out_dir, GOLDEN_FILE), golden, meta)
-    doc = contract_doc(spec, tensors, runtime, world_cfg, w_bytes, g_bytes, golden_steps, seed,
-                       source, members)
-    # Last: the contract's presence marks a complete export.
-    files.write_json(os.path.join(out_dir, CONTRACT_FILE), doc, indent=1)
+    written = {WEIGHTS_FILE: _save_tensors(os.path.join(out_dir, WEIGHTS_FILE), tensors, meta),
+               GOLDEN_FILE: _save_tensors(os.path.join(out_dir, GOLDEN_FILE), golden, meta)}
+    if graph is not None:
+        files.write_bytes(os.path.join(out_dir, ONNX_FILE), graph)
+        written[ONNX_FILE] = graph
+    doc = contract_doc(spec, tensors, runtime, world_cfg, written[WEIGHTS_FILE], written[GOLDEN_FILE],
+                       golden_steps, seed, source, members, graph_section)
+    written[CONTRACT_FILE] = (json.dumps(files.json_safe(doc), indent=1, allow_nan=False) + "\n").encode()
+    files.write_bytes(os.path.join(out_dir, CONTRACT_FILE), written[CONTRACT_FILE])
+    # Last: the manifest's presence marks a complete export (a crash before it leaves a
+    # directory that every loader refuses).
+    write_manifest(out_dir, written)
     return out_dir
 
 
 def export_checkpoint(path: str, out_dir: str, step: int | None = None, member: int | None = None,
-                      ensemble: bool = False, control_hz: float | None = None) -> str:
+                      ensemble: bool = False, control_hz: float | None = None,
+                      onnx: bool | None = None) -> str:
     """Export the acting (moving-average) policy of a training checkpoint; returns out_dir.
 
     path: a run directory or its checkpoints/ directory; step: default the newest intact one.
     The checkpoint is opened by training.checkpoint.load_checkpoint, with the PolicyConfig and
     World saved beside it; the contract's source names '<checkpoints dir>@<step>'. member /
-    ensemble / control_hz as in `export`. Raises FileNotFoundError or ValueError (the loader's,
+    ensemble / control_hz / onnx as in `export`. Raises FileNotFoundError or ValueError (the loader's,
     naming the file and the reason) or ExportError."""
     from training.checkpoint import load_checkpoint
     _refuse_existing(out_dir)
     loaded = load_checkpoint(path, step)
     return export(loaded.params, loaded.cfg.policy, loaded.cfg.world, out_dir, member=member,
                   ensemble=ensemble, source=f"{os.path.abspath(loaded.directory)}@{loaded.step}",
-                  control_hz=control_hz)
+                  control_hz=control_hz, onnx=onnx)
 
 
 # --------------------------------------------------------------------------------------------
 # Load
 # --------------------------------------------------------------------------------------------
-def read_contract(directory: str) -> dict:
-    """The parsed contract.json of an export (format and version checked)."""
-    path = os.path.join(directory, CONTRACT_FILE)
+def _read_manifest(directory: str) -> dict:
+    """manifest.json's `files` (name -> {sha256, bytes}), its format and version checked."""
+    path = os.path.join(directory, MANIFEST_FILE)
+    if not os.path.isdir(directory):
+        raise ExportError(f"{directory}: not a directory (expected a policy export)")
     try:
-        with open(path) as f:
-            doc = json.load(f)
+        with open(path, "rb") as f:
+            doc = json.loads(f.read())
     except FileNotFoundError:
-        raise ExportError(f"{path}: missing (not a policy export directory?)") from None
-    except (OSError, json.JSONDecodeError) as e:
+        raise ExportError(f"{path}: missing: not a policy export, an incomplete one, or one of "
+                          f"format version 1 (no manifest: refused; export the checkpoint again "
+                          f"with `ttmjx export`)") from None
+    except (OSError, ValueError) as e:
+        raise ExportError(f"{path}: unreadable manifest ({e})") from e
+    if not isinstance(doc, dict) or doc.get("format") != EXPORT_FORMAT:
+        raise ExportError(f"{path}: not a {EXPORT_FORMAT} manifest")
+    if doc.get("format_version") != EXPORT_VERSION:
+        raise ExportError(f"{path}: export format version {doc.get('format_version')!r}, this runner "
+                          f"reads version {EXPORT_VERSION}")
+    listed = doc.get("files")
+    if not isinstance(listed, dict) or not all(
+            isinstance(v, dict) and isinstance(v.get("sha256"), str) for v in listed.values()):
+        raise ExportError(f"{path}: no 'files' table of {{name: {{sha256, bytes}}}}")
+    for name in listed:
+        if name != os.path.basename(name) or name in (MANIFEST_FILE, ".", "..") or not name:
+            raise ExportError(f"{path}: lists {name!r}, expected a plain file name of this directory")
+    return listed
+
+
+def verified_files(directory: str) -> dict:
+    """{name: bytes} of every file of an export, each read once and checked against
+    manifest.json: a missing file, a file the manifest does not list, or a SHA-256 that does
+    not match is an ExportError naming the file."""
+    listed = _read_manifest(directory)
+    for name in REQUIRED_FILES:
+        if name not in listed:
+            raise ExportError(f"{os.path.join(directory, MANIFEST_FILE)}: does not list {name}")
+    present = set(os.listdir(directory)) - {MANIFEST_FILE}
+    extra = sorted(present - set(listed))
+    if extra:
+        raise ExportError(f"{os.path.join(directory, extra[0])}: not listed in {MANIFEST_FILE}: an "
+                          f"unexpected file in the export; refusing to load it")
+    out = {}
+    for name, entry in sorted(listed.items()):
+        path = os.path.join(directory, name)
+        if name not in present or not os.path.isfile(path):
+            raise ExportError(f"{path}: missing (listed in {MANIFEST_FILE}); an incomplete export")
+        with open(path, "rb") as f:
+            data = f.read()
+        got = sha256_bytes(data)
+        if got != entry["sha256"]:
+            raise ExportError(f"{path}: SHA-256 {got} does not match {MANIFEST_FILE}'s "
+                              f"{entry['sha256']}: the file was modified; refusing to load it")
+        out[name] = data
+    return out
+
+
+def read_contract(directory: str, verified: dict | None = None) -> dict:
+    """The parsed contract.json of an export (every file checked against the manifest, then
+    format and version). verified: verified_files(directory) if already read."""
+    path = os.path.join(directory, CONTRACT_FILE)
+    verified = verified_files(directory) if verified is None else verified
+    try:
+        doc = json.loads(verified[CONTRACT_FILE])
+    except ValueError as e:
         raise ExportError(f"{path}: unreadable contract ({e})") from e
     if not isinstance(doc, dict) or doc.get("format") != EXPORT_FORMAT:
         raise ExportError(f"{path}: not a {EXPORT_FORMAT} contract")
@@ -444,8 +573,9 @@ def _check_robot(doc: dict, runtime: Contract, expected_robot: str, expected_joi
                           f"{robot_limits.speed_margin}")
 
 
-def self_test(policy: ExportedPolicy, golden: dict, tol: float = GOLDEN_TOL) -> float:
-    """Run the numpy policy on the golden frames; max |numpy - JAX| (raises ExportError > tol)."""
+def self_test(policy, golden: dict, tol: float = GOLDEN_TOL, what: str = "numpy policy") -> float:
+    """Run a policy (numpy or ONNX, `run(frames, stacks, members)`) on the golden frames;
+    max |policy - JAX| (raises ExportError > tol)."""
     frames, stacks = golden.get("frames"), golden.get("stacks")
     member_actions = golden.get("member_actions")
     n, k, o = policy.members, policy.spec.input_frames, policy.spec.obs_size
@@ -463,7 +593,7 @@ def self_test(policy: ExportedPolicy, golden: dict, tol: float = GOLDEN_TOL) -> 
     mean_err = float(np.max(np.abs(got.mean(0) - golden.get("actions", member_actions.mean(0)))))
     err = max(err, mean_err)
     if not err <= tol:
-        raise ExportError(f"golden self-test failed: the numpy policy's actions differ from the JAX "
+        raise ExportError(f"golden self-test failed: the {what}'s actions differ from the JAX "
                           f"policy's by up to {err:.3g} (> {tol:g}); refusing to run it")
     return err
 
@@ -493,11 +623,11 @@ def _policy_of(doc: dict, runtime: Contract, directory: str) -> tuple[PolicySpec
     return spec, members
 
 
-def _weights_of(doc: dict, spec: PolicySpec, members: int, directory: str) -> dict:
+def _weights_of(doc: dict, spec: PolicySpec, members: int, directory: str, verified: dict) -> dict:
     """The weight tensors, checked against their hash, the contract's tensor list, the policy
     and the contract's normalization."""
     w = doc["weights"]
-    tensors = _read_tensors(directory, w.get("file", WEIGHTS_FILE), str(w.get("sha256")))
+    tensors = _parse_tensors(directory, verified, w.get("file", WEIGHTS_FILE), str(w.get("sha256")))
     listed = {k: tuple(v) for k, v in (w.get("tensors") or {}).items()}
     actual = {k: tuple(v.shape) for k, v in tensors.items()}
     if listed != actual:
@@ -524,16 +654,53 @@ def load_export(directory: str, expected_robot: str = ROBOT_MODEL_ID,
     export whose contract is wider anywhere is refused (None skips the check). The returned
     policy's `policy_hash` is 'sha256:<weights hash>' and `self_test_error` the golden error.
     """
-    doc = read_contract(directory)
+    verified, doc, runtime, spec, tensors = _checked_export(directory, expected_robot, expected_joints,
+                                                            robot_limits)
+    policy = ExportedPolicy(spec, tensors, policy_hash="sha256:" + doc["weights"]["sha256"])
+    if run_self_test:
+        policy.self_test_error = self_test(policy, _golden_of(doc, directory, verified))
+    policy.contract_doc = doc
+    return policy, runtime
+
+
+def _checked_export(directory: str, expected_robot, expected_joints, robot_limits) -> tuple:
+    """(verified files, contract, runtime Contract, spec, weight tensors) after every check of
+    load_export but the golden self-test."""
+    verified = verified_files(directory)
+    doc = read_contract(directory, verified)
     runtime = _runtime_of(doc, directory)
     _check_robot(doc, runtime, expected_robot, expected_joints, robot_limits)
     spec, members = _policy_of(doc, runtime, directory)
-    tensors = _weights_of(doc, spec, members, directory)
-    policy = ExportedPolicy(spec, tensors, policy_hash="sha256:" + doc["weights"]["sha256"])
-    if run_self_test:
-        g = doc["golden"]
-        golden = _read_tensors(directory, g.get("file", GOLDEN_FILE), str(g.get("sha256")))
-        policy.self_test_error = self_test(policy, golden)
+    return verified, doc, runtime, spec, _weights_of(doc, spec, members, directory, verified)
+
+
+def _golden_of(doc: dict, directory: str, verified: dict) -> dict:
+    g = doc["golden"]
+    return _parse_tensors(directory, verified, g.get("file", GOLDEN_FILE), str(g.get("sha256")))
+
+
+def load_onnx_export(directory: str, threads: int = 1, expected_robot: str = ROBOT_MODEL_ID,
+                     expected_joints=JOINT_NAMES, robot_limits: Contract | None = Contract()
+                     ) -> tuple[OnnxPolicy, Contract]:
+    """(ONNX policy on onnxruntime with `threads` intra-op threads, runtime Contract): every
+    check of load_export, then policy.onnx's golden self-test. ExportError if the export has
+    no graph or onnxruntime is not installed."""
+    verified, doc, runtime, spec, tensors = _checked_export(directory, expected_robot, expected_joints,
+                                                            robot_limits)
+    section = doc.get("onnx")
+    if not isinstance(section, dict) or section.get("file") not in verified:
+        raise ExportError(f"{os.path.join(directory, ONNX_FILE)}: this export has no ONNX graph "
+                          f"(written without the `onnx` package or with --onnx off); export again")
+    data = verified[section["file"]]
+    if sha256_bytes(data) != section.get("sha256"):
+        raise ExportError(f"{os.path.join(directory, section['file'])}: SHA-256 differs from the "
+                          f"contract's onnx.sha256; refusing to load it")
+    n = int(tensors["net/params/head/bias"].shape[0])
+    try:
+        policy = OnnxPolicy(spec, n, data, threads=threads, policy_hash="sha256:" + section["sha256"])
+    except MissingExtra as e:
+        raise ExportError(str(e)) from None
+    policy.self_test_error = self_test(policy, _golden_of(doc, directory, verified), what="ONNX graph")
     policy.contract_doc = doc
     return policy, runtime
 

@@ -28,7 +28,8 @@ memory bandwidth. `prepare(state)`, called between control ticks, computes the r
 products h Wh + b of the next step in advance; `step` then reads only the input matrices (a
 third of the bytes), with bit-identical results. `benchmark(...)` times single steps (with and
 without prepare) on one CPU core (BLAS threads = 1, pinned), in a subprocess so the thread
-settings take effect before numpy loads (`ttmjx robot bench --json`).
+settings take effect before numpy loads (`ttmjx robot bench --json`); engine='onnx' times the
+same policy as deploy/onnx_policy.py's graph on onnxruntime (intra-op threads = `threads`).
 """
 from __future__ import annotations
 
@@ -338,17 +339,37 @@ def _stats(ms: np.ndarray, prefix: str = "") -> dict:
             f"{prefix}mean_ms": float(ms.mean())}
 
 
+ENGINES = ("numpy", "onnx")
+
+
+def _bench_policy(engine: str, spec: PolicySpec, members: int, seed: int, threads: int) -> tuple:
+    """(policy with random weights, versions) of an engine: numpy or the ONNX graph on
+    onnxruntime with `threads` intra-op threads."""
+    tensors = random_tensors(spec, members, seed)
+    if engine == "numpy":
+        return ExportedPolicy(spec, tensors), {"numpy": np.__version__}
+    if engine != "onnx":
+        raise ValueError(f"engine {engine!r}; expected one of {ENGINES}")
+    from deploy.onnx_policy import OnnxPolicy, import_onnxruntime, model_bytes
+    ort = import_onnxruntime()
+    policy = OnnxPolicy(spec, members, model_bytes(spec, tensors), threads=threads)
+    return policy, {"numpy": np.__version__, "onnxruntime": ort.__version__}
+
+
 def bench_here(kind: str = "lstm", hidden: int = 1024, layers: int = 2, members: int = 1,
-               frame_stack: int = 8, steps: int = 2000, warmup: int = 200, seed: int = 0) -> dict:
+               frame_stack: int = 8, steps: int = 2000, warmup: int = 200, seed: int = 0,
+               obs_size: int = REAL_OBS_SIZE, engine: str = "numpy", threads: int = 1) -> dict:
     """Time single steps in THIS process (thread settings are whatever numpy started with):
-    `p50_ms`... the whole step; `prepared_p50_ms`... the step after `prepare` (the critical
-    path when prepare runs between ticks), `prepare_p50_ms`... prepare itself."""
-    spec = PolicySpec(kind, hidden, layers, REAL_OBS_SIZE, frame_stack)
-    policy = ExportedPolicy(spec, random_tensors(spec, members, seed))
+    `p50_ms`... the whole step; for the numpy LSTM also `prepared_p50_ms`... the step after
+    `prepare` (the critical path when prepare runs between ticks), `prepare_p50_ms`... prepare
+    itself. obs_size: values per frame (13 on the robot; 16 with the ball velocity)."""
+    spec = PolicySpec(kind, hidden, layers, obs_size, frame_stack).check()
+    policy, versions = _bench_policy(engine, spec, members, seed, threads)
     full, _ = _time_steps(policy, steps, warmup, seed)
-    out = {"kind": kind, "hidden": hidden, "layers": layers, "members": members, "steps": steps,
-           **_stats(1e3 * full), "numpy": np.__version__}
-    if kind == "lstm":
+    out = {"engine": engine, "kind": kind, "hidden": hidden, "layers": layers, "members": members,
+           "obs_size": obs_size, "frame_stack": spec.input_frames, "steps": steps,
+           **_stats(1e3 * full), **versions}
+    if kind == "lstm" and engine == "numpy":
         crit, prep = _time_steps(policy, steps, warmup, seed + 1, prepare=True)
         out.update({**_stats(1e3 * crit, "prepared_"), **_stats(1e3 * prep, "prepare_")})
     return out
@@ -356,11 +377,17 @@ def bench_here(kind: str = "lstm", hidden: int = 1024, layers: int = 2, members:
 
 def benchmark(kind: str = "lstm", hidden: int = 1024, layers: int = 2, members: int = 1,
               steps: int = 2000, warmup: int = 200, threads: int = 1, cpu: int | None = None,
-              timeout_s: float = 600.0) -> dict:
-    """Step latency (p50/p90/p99/max, ms) of a numpy policy on `threads` BLAS threads, pinned to
-    one CPU core (`cpu`, default: the last one this process may use), in a fresh subprocess so
-    OMP/OPENBLAS/MKL_NUM_THREADS apply before numpy loads. Returns the JSON the child prints,
-    plus the settings."""
+              timeout_s: float = 600.0, engine: str = "numpy", obs_size: int = REAL_OBS_SIZE,
+              frame_stack: int = 8) -> dict:
+    """Step latency (p50/p90/p99/max, ms) of a numpy (or, engine='onnx', onnxruntime) policy
+    on `threads` BLAS / intra-op threads, pinned to one CPU core (`cpu`, default: the last one
+    this process may use), in a fresh subprocess so OMP/OPENBLAS/MKL_NUM_THREADS apply before
+    numpy loads. Returns the JSON the child prints, plus the settings."""
+    if engine not in ENGINES:
+        raise ValueError(f"engine {engine!r}; expected one of {ENGINES}")
+    if engine == "onnx":           # here, for a one-line error rather than the child's traceback
+        from deploy.onnx_policy import import_onnx, import_onnxruntime
+        import_onnx(), import_onnxruntime()
     env = dict(os.environ)
     for v in THREAD_VARS:
         env[v] = str(threads)
@@ -369,7 +396,8 @@ def benchmark(kind: str = "lstm", hidden: int = 1024, layers: int = 2, members: 
     cmd = [sys.executable, "-c", "import sys; from deploy.numpy_policy import _main; sys.exit(_main())",
            "--bench", "--kind", kind,
            "--hidden", str(hidden), "--layers", str(layers), "--members", str(members),
-           "--steps", str(steps), "--warmup", str(warmup), "--json"]
+           "--steps", str(steps), "--warmup", str(warmup), "--engine", engine,
+           "--obs-size", str(obs_size), "--frame-stack", str(frame_stack), "--threads", str(threads), "--json"]
     if cpu is not None:
         cmd += ["--cpu", str(cpu)]
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -392,14 +420,19 @@ def _main(argv=None) -> int:
     p.add_argument("--members", type=int, default=1)
     p.add_argument("--steps", type=int, default=2000)
     p.add_argument("--warmup", type=int, default=200)
+    p.add_argument("--obs-size", type=int, default=REAL_OBS_SIZE)
+    p.add_argument("--frame-stack", type=int, default=8)
+    p.add_argument("--engine", choices=ENGINES, default="numpy")
+    p.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
     p.add_argument("--cpu", type=int, default=None, help="pin to this CPU core")
     p.add_argument("--json", action="store_true")
     a = p.parse_args(argv)
     if a.cpu is not None and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {a.cpu})
-    res = bench_here(a.kind, a.hidden, a.layers, a.members, steps=a.steps, warmup=a.warmup)
+    res = bench_here(a.kind, a.hidden, a.layers, a.members, a.frame_stack, steps=a.steps, warmup=a.warmup,
+                     obs_size=a.obs_size, engine=a.engine, threads=a.threads)
     res["threads_env"] = {v: os.environ.get(v) for v in THREAD_VARS[:3]}
-    text = (f"{a.kind} {a.layers}x{a.hidden} x{a.members}: step p50 {res['p50_ms']:.3f} ms, "
+    text = (f"{a.engine} {a.kind} {a.layers}x{a.hidden} x{a.members}: step p50 {res['p50_ms']:.3f} ms, "
             f"p99 {res['p99_ms']:.3f} ms, max {res['max_ms']:.3f} ms over {a.steps} steps")
     if "prepared_p50_ms" in res:
         text += (f"; after prepare() p50 {res['prepared_p50_ms']:.3f} ms, p99 "

@@ -61,6 +61,7 @@ def cases():
         ("export " + RUN + " --out {tmp}/e", "--step", ["-1", "99"]),
         ("export " + RUN + " --out {tmp}/e", "--control-hz", ["50"]),
         ("export " + RUN + " --out {tmp}/e", "--json", ["--json"]),     # two members, none chosen
+        ("export " + RUN + " --out {tmp}/e", "--onnx", ["maybe"]),
         ("robot run --station sim --goals five", "--policy", ["{tmp}/missing", "{empty}", "{file}"]),
         ("robot run --policy {empty} --goals five", "--station", ["moon"]),
         ("robot run --policy {empty} --station fake", "--goals", ["abc", "0.7", "nan,0", "5,5", "{tmp}/g.npy", ""]),
@@ -70,6 +71,7 @@ def cases():
         ("robot run --policy {empty} --station sim --goals five", "--distribution", ["wide"]),
         ("robot bench", "--hidden", ["0"]), ("robot bench", "--layers", ["0"]), ("robot bench", "--members", ["0"]),
         ("robot bench", "--steps", ["0"]), ("robot bench", "--threads", ["0"]), ("robot bench", "--kind", ["gru"]),
+        ("robot bench", "--engine", ["torch"]), ("robot bench", "--obs-size", ["14"]), ("robot bench", "--frame-stack", ["0"]),
     ]:
         for v in values:
             argv = cmd.split() + ([field] if field else []) + ([v] if v != field else [])

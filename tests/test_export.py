@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from deploy import ROBOT_MODEL_ID, Contract, ExportError, load_export, read_contract
-from deploy.export import (CONTRACT_FILE, GOLDEN_FILE, WEIGHTS_FILE, export, export_checkpoint,
-                           sha256_bytes)
+from deploy.export import (CONTRACT_FILE, GOLDEN_FILE, MANIFEST_FILE, ONNX_FILE, WEIGHTS_FILE, export,
+                           export_checkpoint, sha256_bytes)
 from deploy.numpy_policy import ExportedPolicy, PolicySpec, benchmark, tensor_shapes
 from models import (Normalizer, PolicyConfig, PolicyParams, init_ensemble, init_params, make_policy,
                     member)
@@ -23,6 +23,11 @@ from ttmjx.world import env, observation
 from ttmjx.world.config import World
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+try:
+    import onnx  # noqa: F401  (the optional extra: exports hold policy.onnx only with it)
+    HAVE_ONNX = True
+except ImportError:
+    HAVE_ONNX = False
 LSTM = PolicyConfig(kind="lstm", hidden=32, layers=2)
 MLP = PolicyConfig(kind="framestack", hidden=32, layers=2, frame_stack=4)
 
@@ -140,7 +145,8 @@ def ensemble_export(tmp_path_factory):
 
 def test_export_round_trip_and_golden_self_test(ensemble_export):
     out, params = ensemble_export
-    assert sorted(os.listdir(out)) == sorted([CONTRACT_FILE, WEIGHTS_FILE, GOLDEN_FILE])
+    listed = [CONTRACT_FILE, WEIGHTS_FILE, GOLDEN_FILE, MANIFEST_FILE]
+    assert sorted(os.listdir(out)) == sorted(listed + ([ONNX_FILE] if HAVE_ONNX else []))
     pol, contract = load_export(out)
     assert isinstance(contract, Contract) and contract.control_hz == 20.0 and contract.horizon == 32
     assert pol.members == 3 and pol.state_shape == (3, 2, 2, 32)
@@ -202,6 +208,19 @@ def _copy(src, tmp_path, name="x"):
     return dst
 
 
+def _rehash_manifest(d):
+    """Make manifest.json match the files as they are now (a tamperer who also fixes the
+    manifest), so that only the deeper checks can catch a change."""
+    path = os.path.join(d, MANIFEST_FILE)
+    with open(path) as f:
+        man = json.load(f)
+    for name in man["files"]:
+        if os.path.exists(os.path.join(d, name)):
+            man["files"][name]["sha256"] = sha256_bytes(open(os.path.join(d, name), "rb").read())
+    with open(path, "w") as f:
+        json.dump(man, f)
+
+
 def _edit_contract(d, fn):
     path = os.path.join(d, CONTRACT_FILE)
     with open(path) as f:
@@ -209,6 +228,7 @@ def _edit_contract(d, fn):
     fn(doc)
     with open(path, "w") as f:
         json.dump(doc, f)
+    _rehash_manifest(d)
 
 
 def _rewrite_tensors(d, name, key, fn):
@@ -227,7 +247,7 @@ def _rewrite_tensors(d, name, key, fn):
         doc[key]["sha256"] = sha256_bytes(data)
         if key == "weights":
             doc[key]["tensors"] = {k: list(v.shape) for k, v in tensors.items()}
-    _edit_contract(d, fix)
+    _edit_contract(d, fix)     # also rehashes the manifest
 
 
 def test_tampered_or_mismatched_exports_are_refused(ensemble_export, tmp_path):
@@ -242,9 +262,10 @@ def test_tampered_or_mismatched_exports_are_refused(ensemble_export, tmp_path):
         data = bytearray(open(path, "rb").read())
         data[-5] ^= 0x01
         open(path, "wb").write(bytes(data))
-    case("weights byte flipped", "SHA-256", flip_byte)
-    case("golden byte flipped", "SHA-256", lambda d: open(os.path.join(d, GOLDEN_FILE), "ab").write(b"\0"))
-    case("weights missing", "missing", lambda d: os.remove(os.path.join(d, WEIGHTS_FILE)))
+        _rehash_manifest(d)
+    case("weights byte flipped, manifest fixed", "does not match the contract", flip_byte)
+    case("golden byte flipped, manifest fixed", "does not match the contract", lambda d: (
+        open(os.path.join(d, GOLDEN_FILE), "ab").write(b"\0"), _rehash_manifest(d)))
     case("another robot", "for robot", lambda d: _edit_contract(
         d, lambda c: c["robot"].__setitem__("model_id", "kuka-kr6/v1")))
     case("joint order", "joint order", lambda d: _edit_contract(
@@ -288,6 +309,115 @@ def test_tampered_or_mismatched_exports_are_refused(ensemble_export, tmp_path):
         load_export(src, expected_joints=("a",) * 8)
 
 
+# --------------------------------------------------------------------------- manifest
+def test_manifest_hashes_every_file_and_loading_refuses_any_change(ensemble_export, tmp_path):
+    """manifest.json lists every file with its SHA-256, the contract included; a changed,
+    missing or unexpected file, or no manifest at all (format 1), is refused naming the file."""
+    src = ensemble_export[0]
+    man = json.load(open(os.path.join(src, MANIFEST_FILE)))
+    assert man["format_version"] == 2 and set(man["files"]) == set(os.listdir(src)) - {MANIFEST_FILE}
+    for name, entry in man["files"].items():
+        data = open(os.path.join(src, name), "rb").read()
+        assert entry == {"sha256": sha256_bytes(data), "bytes": len(data)}
+
+    def flip(name):
+        def mutate(d):
+            path = os.path.join(d, name)
+            data = bytearray(open(path, "rb").read())
+            data[len(data) // 2] ^= 0x20        # one bit, mid-file (for the contract: one letter)
+            open(path, "wb").write(bytes(data))
+        return mutate
+    cases = [
+        (flip(CONTRACT_FILE), rf"{CONTRACT_FILE}: SHA-256 \w+ does not match {MANIFEST_FILE}"),
+        (flip(WEIGHTS_FILE), rf"{WEIGHTS_FILE}: SHA-256 \w+ does not match {MANIFEST_FILE}"),
+        (flip(GOLDEN_FILE), rf"{GOLDEN_FILE}: SHA-256 \w+ does not match {MANIFEST_FILE}"),
+        (lambda d: os.remove(os.path.join(d, GOLDEN_FILE)), rf"{GOLDEN_FILE}: missing \(listed in"),
+        (lambda d: open(os.path.join(d, "notes.txt"), "w").write("hi"), r"notes.txt: not listed in"),
+        (lambda d: os.remove(os.path.join(d, MANIFEST_FILE)), r"manifest.json: missing: .*format version 1"),
+        (lambda d: _edit_manifest(d, lambda m: m.__setitem__("format_version", 1)), r"format version 1, this"),
+        (lambda d: _edit_manifest(d, lambda m: m["files"].__setitem__("../x", m["files"][GOLDEN_FILE])),
+         r"lists '../x', expected a plain file name"),
+    ]
+    if HAVE_ONNX:
+        cases.append((flip(ONNX_FILE), rf"{ONNX_FILE}: SHA-256 \w+ does not match {MANIFEST_FILE}"))
+    for i, (mutate, match) in enumerate(cases):
+        d = _copy(src, tmp_path, f"m{i}")
+        mutate(d)
+        with pytest.raises(ExportError, match=match):
+            load_export(d)
+        with pytest.raises(ExportError, match=match):
+            read_contract(d)
+    pol, _ = load_export(src)                       # untouched: loads
+    assert pol.members == 3
+
+
+def _edit_manifest(d, fn):
+    path = os.path.join(d, MANIFEST_FILE)
+    man = json.load(open(path))
+    fn(man)
+    json.dump(man, open(path, "w"))
+
+
+# --------------------------------------------------------------------------- ONNX
+@pytest.fixture(scope="module")
+def mlp_export(tmp_path_factory):
+    """A 2-member frame-stack MLP ensemble (k = 4) exported at 20 Hz (made once)."""
+    out = str(tmp_path_factory.mktemp("exports") / "mlp")
+    export(random_params(MLP, seed=8, members=2), MLP, World(), out, ensemble=True, control_hz=20)
+    return out
+
+
+@pytest.mark.parametrize("which", ["lstm", "framestack"])
+def test_onnx_graph_equals_numpy_policy_on_the_golden_inputs(which, ensemble_export, mlp_export):
+    """policy.onnx on onnxruntime (one thread) gives the numpy policy's actions, member actions
+    and LSTM state, step by step from reset, on the golden frames and on fresh ones."""
+    pytest.importorskip("onnxruntime")
+    from deploy import load_onnx_export
+    from safetensors.numpy import load
+    d = ensemble_export[0] if which == "lstm" else mlp_export
+    npol, contract = load_export(d)
+    opol, ocontract = load_onnx_export(d)
+    assert ocontract == contract and opol.members == npol.members and 0 <= opol.self_test_error <= 1e-5
+    section = read_contract(d)["onnx"]
+    assert section["file"] == ONNX_FILE and section["golden_error"] <= 1e-5
+    assert section["checked_with"].startswith("onnxruntime")
+    golden = load(open(os.path.join(d, GOLDEN_FILE), "rb").read())
+    fresh = observations(24, contract.frame_stack, seed=11)
+    for frames, stacks in ((golden["frames"], golden["stacks"]), fresh):
+        stacks = stacks[:, stacks.shape[1] - npol.spec.input_frames:]
+        s_np, s_ox = npol.reset(), opol.reset()
+        for t in range(len(frames)):
+            s_np, m_np = npol.step_members(s_np, frames[t], stacks[t])
+            s_ox2, a_ox = opol.step(s_ox, frames[t], stacks[t])
+            _, m_ox = opol.step_members(s_ox, frames[t], stacks[t])
+            s_ox = s_ox2
+            assert a_ox.shape == (8,) and a_ox.dtype == np.float32
+            np.testing.assert_allclose(m_ox, m_np, rtol=0, atol=1e-5)
+            np.testing.assert_allclose(a_ox, m_np.mean(0), rtol=0, atol=1e-5)
+            if which == "lstm":
+                np.testing.assert_allclose(s_ox, s_np, rtol=0, atol=1e-5)
+        assert np.abs(m_np).max() > 0.5                  # non-trivial actions
+    np.testing.assert_allclose(opol.run(golden["frames"], golden["stacks"][:, -npol.spec.input_frames:]),
+                               golden["actions"], rtol=0, atol=1e-5)
+
+
+def test_onnx_optional(tmp_path, monkeypatch):
+    """onnx=False writes no graph (and load_onnx_export says so); without the `onnx` package,
+    onnx=True is a one-line error naming the extra to install and the default skips the graph."""
+    params = random_params(MLP, seed=2)
+    export(params, MLP, World(), str(tmp_path / "off"), onnx=False)
+    assert ONNX_FILE not in os.listdir(tmp_path / "off") and read_contract(str(tmp_path / "off"))["onnx"] is None
+    load_export(str(tmp_path / "off"))
+    from deploy import load_onnx_export
+    with pytest.raises(ExportError, match="has no ONNX graph"):
+        load_onnx_export(str(tmp_path / "off"))
+    monkeypatch.setitem(sys.modules, "onnx", None)          # `import onnx` now raises ImportError
+    with pytest.raises(ExportError, match=r"optional package 'onnx'.*pip install 'ttmjx\[onnx\]'"):
+        export(params, MLP, World(), str(tmp_path / "on"), onnx=True)
+    export(params, MLP, World(), str(tmp_path / "auto"))
+    assert sorted(os.listdir(tmp_path / "auto")) == sorted([CONTRACT_FILE, WEIGHTS_FILE, GOLDEN_FILE, MANIFEST_FILE])
+
+
 def test_load_needs_numpy_only(ensemble_export):
     """The robot's side (load_export, the numpy policy, the runner) never imports JAX."""
     code = ("import sys; from deploy.export import load_export; from deploy.runner import Runner; "
@@ -329,3 +459,12 @@ def test_latency_benchmark_runs_on_one_thread():
     assert res["threads"] == 1 and res["threads_env"]["OMP_NUM_THREADS"] == "1"
     assert 0 < res["p50_ms"] <= res["p99_ms"] <= res["max_ms"]
     assert 0 < res["prepared_p50_ms"] <= res["prepared_p99_ms"] and res["prepare_p50_ms"] > 0
+
+
+def test_latency_benchmark_of_the_onnx_graph():
+    pytest.importorskip("onnxruntime")
+    res = benchmark("framestack", hidden=64, layers=2, members=2, steps=50, warmup=5, engine="onnx",
+                    obs_size=16, frame_stack=8)
+    assert res["engine"] == "onnx" and res["threads"] == 1 and res["onnxruntime"]
+    assert res["obs_size"] == 16 and res["frame_stack"] == 8
+    assert 0 < res["p50_ms"] <= res["p99_ms"] <= res["max_ms"]

@@ -221,7 +221,8 @@ class EvalArgs(Report):
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class ExportArgs(Report):
-    """Safetensors weights + contract + golden self-test of a checkpoint, for the robot runner."""
+    """Safetensors weights + contract + golden self-test (+ ONNX graph) of a checkpoint, for the
+    robot runner, under a manifest of SHA-256 hashes (docs/DATA.md)."""
     BOUNDS: ClassVar[dict] = {"step": (0, None), "member": (0, None)}
     NEW_DIRS: ClassVar[tuple] = ("out",)
     checkpoint: RunPath
@@ -236,6 +237,8 @@ class ExportArgs(Report):
     """One member of an ensemble (not with --ensemble)."""
     control_hz: Literal[CONTROL_RATES] | None = None
     """The robot's control rate; None: the rate the policy was trained at."""
+    onnx: Literal["auto", "on", "off"] = "auto"
+    """policy.onnx (one policy step as an ONNX graph): auto = when the optional `onnx` package is installed."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -269,11 +272,17 @@ class RobotRunArgs(Report):
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class RobotBenchArgs(Report):
-    """Step latency of the numpy policy on one CPU core (the robot side's budget)."""
+    """Step latency of the numpy or ONNX policy on one CPU core (the robot side's budget; docs/BENCHMARKS.md)."""
     BOUNDS: ClassVar[dict] = {"hidden": (1, 8192), "layers": (1, 16), "members": (1, 64), "steps": (1, 10**6),
-                              "threads": (1, 1024)}
+                              "threads": (1, 1024), "frame_stack": (1, 64)}
+    engine: Literal["numpy", "onnx"] = "numpy"
+    """numpy (deploy/numpy_policy.py) or the ONNX graph on onnxruntime (deploy/onnx_policy.py; the `onnx` extra)."""
     kind: Literal["lstm", "framestack"] = "lstm"
     """Policy type."""
+    obs_size: Literal[13, 16] = 13
+    """Values per frame: 13 (the robot's) or 16 (with the ball velocity, the paper-sim presets)."""
+    frame_stack: int = 8
+    """Frames of the frame-stack MLP's input."""
     hidden: int = 1024
     """Units per layer."""
     layers: int = 2
@@ -283,7 +292,7 @@ class RobotBenchArgs(Report):
     steps: int = 2000
     """Timed policy steps."""
     threads: int = 1
-    """BLAS threads."""
+    """BLAS threads (numpy) or onnxruntime intra-op threads."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -391,15 +400,19 @@ def evaluate(a: EvalArgs) -> None:
 def export(a: ExportArgs) -> None:
     from deploy.export import export_checkpoint, load_export
     path = export_checkpoint(a.checkpoint, a.out, step=a.step, member=a.member, ensemble=a.ensemble,
-                             control_hz=a.control_hz)
+                             control_hz=a.control_hz, onnx={"auto": None, "on": True, "off": False}[a.onnx])
     policy, contract = load_export(path)       # the export must pass its own checks
-    spec, source = policy.spec, policy.contract_doc["source"]["checkpoint"]
+    doc = policy.contract_doc
+    spec, source, graph = policy.spec, doc["source"]["checkpoint"], doc.get("onnx")
     out = {"out": path, "source": source, "kind": spec.kind, "hidden": spec.hidden,
            "layers": spec.layers, "members": policy.members, "control_hz": contract.control_hz,
-           "policy_hash": policy.policy_hash, "self_test_error": policy.self_test_error}
+           "policy_hash": policy.policy_hash, "self_test_error": policy.self_test_error,
+           "onnx": graph and {k: graph[k] for k in ("file", "sha256", "golden_error", "checked_with")}}
     report(a, out, f"exported {source} -> {path} ({spec.kind} {spec.layers}x{spec.hidden}, "
                    f"{policy.members} member(s), {contract.control_hz:g} Hz); golden self-test "
-                   f"max error {policy.self_test_error:.2g}")
+                   f"max error {policy.self_test_error:.2g}; " +
+           (f"{graph['file']}: golden max error {graph['golden_error']:.2g} ({graph['checked_with']})"
+            if graph else "no ONNX graph (pip install 'ttmjx[onnx]' for one)"))
 
 
 def robot_run(a: RobotRunArgs) -> None:
@@ -425,8 +438,10 @@ def robot_run(a: RobotRunArgs) -> None:
 
 def robot_bench(a: RobotBenchArgs) -> None:
     from deploy.numpy_policy import benchmark
-    out = benchmark(a.kind, a.hidden, a.layers, a.members, steps=a.steps, threads=a.threads)
-    text = (f"{a.kind} {a.layers}x{a.hidden} x{a.members} on {a.threads} thread(s), "
+    out = benchmark(a.kind, a.hidden, a.layers, a.members, steps=a.steps, threads=a.threads,
+                    engine=a.engine, obs_size=a.obs_size, frame_stack=a.frame_stack)
+    shape = f"[{a.frame_stack}, {a.obs_size}]" if a.kind == "framestack" else f"[{a.obs_size}]"
+    text = (f"{a.engine} {a.kind} {a.layers}x{a.hidden} x{a.members}, input {shape}, on {a.threads} thread(s), "
             f"core {out['cpu']}: step p50 {out['p50_ms']:.3f} ms, p99 {out['p99_ms']:.3f} ms, "
             f"max {out['max_ms']:.3f} ms")
     if "prepared_p50_ms" in out:
@@ -452,9 +467,9 @@ COMMANDS: dict[str, Command] = {
     "train": Command(TrainArgs, train, "GoalsEye training: demonstrations, GCBC, self-practice, evaluation",
                      parse_train),
     "eval": Command(EvalArgs, evaluate, "goal-reaching metrics of a run or checkpoint"),
-    "export": Command(ExportArgs, export, "safetensors weights + contract + golden self-test for the robot runner"),
+    "export": Command(ExportArgs, export, "safetensors weights + contract + golden self-test + ONNX graph for the robot runner"),
     "robot run": Command(RobotRunArgs, robot_run, "the robot runner: play an exported policy on a station"),
-    "robot bench": Command(RobotBenchArgs, robot_bench, "numpy policy step latency on one CPU core"),
+    "robot bench": Command(RobotBenchArgs, robot_bench, "numpy or ONNX policy step latency on one CPU core"),
 }
 
 
