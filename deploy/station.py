@@ -261,6 +261,7 @@ class SimStation:
         self.ball_every = self._steps_per(timing.tracker_hz, "tracker_hz")
         self.joint_latency_s, self.tracker_latency_s = timing.joint_latency_s, timing.tracker_latency_s
         self.action_delay_s = timing.action_delay_s
+        self.joint_offset = 0      # joint samples at physics steps n = joint_offset (mod joint_every)
         self.noise_m, self.rng = tracker_noise_m, np.random.default_rng(seed)
         self.ramp_s = float(ramp_s if ramp_s is not None else (contract.dt if contract else cfg.control_dt))
         self.room = (room_x, room_y)
@@ -466,7 +467,7 @@ class SimStation:
 
     def _sample(self, t: float) -> None:
         """The joint feedback and the ball tracker, each at its rate."""
-        if self.n % self.joint_every == 0:
+        if (self.n - self.joint_offset) % self.joint_every == 0:
             due = self._delivery(t, self.joint_latency_s)
             if due is not None:
                 self.joint_samples.append((t, self.joints(), due))

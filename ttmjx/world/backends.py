@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from ttmjx.world import ballphysics, env, observation, scene
+from ttmjx.world import ballphysics, env, observation, scene, timing
 from ttmjx.world.config import World
 from ttmjx.world.record import Trajectories
 
@@ -217,7 +217,14 @@ class Backend:
             return self._rollouts[key_](params, key, throws, jnp.asarray(goals))
         return self._c_rollout(policy, params, key, throws, goals, t_max, members)
 
+    def timing_draws(self, key, b: int):
+        """The per-episode timing (ttmjx.world.timing.Draw, [B] fields) that rollout(key) on B
+        throws draws: to line a station up with a rollout (tests/test_timing.py)."""
+        keys = jax.random.split(jax.random.split(key, 3)[0], b)
+        return jax.vmap(lambda k: timing.draw(self.cfg, jax.random.fold_in(k, 7)))(keys)
+
     def _reset_keys(self, key, throws, goals):
+        # Keep in step with timing_draws.
         k_reset, k_init, k_act = jax.random.split(key, 3)
         keys = jax.random.split(k_reset, goals.shape[0])
         f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
