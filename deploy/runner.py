@@ -492,7 +492,10 @@ class Runner:
             self._state = self.policy.reset()
         except Exception:
             reset_fault = FAULTS["policy_error"]
-        end, n = "done", min(T, max(0, int(np.floor((self.clock.now() - t0) / dt))))
+        # Every tick whose deadline has passed when the episode begins is logged, not executed:
+        # executing one late would start its command off the tick grid (the world's timing model
+        # acts from the first tick after the trigger, ttmjx.world.timing).
+        end, n = "done", min(T, max(0, int(np.ceil((self.clock.now() - t0) / dt - 1e-9))))
         for m in range(n):                                     # before the episode began
             self._record_past(log, stack, m, t0 + m * dt, goal)
         while n < T:

@@ -615,7 +615,7 @@ def summarize(runner: Runner, station: SimStation, episodes: list[Episode], goal
     (command_safety), faults and timing.
 
     `violations` are all zero on a fake-time clock. With the runner's computation time charged
-    (SimClock(charge_compute=True), the CLI default) the runner's decision-to-send time (~0.1 ms
+    (SimClock(charge_compute=True), `--charge-compute`) the runner's decision-to-send time (~0.1 ms
     of Python) can make two commands arrive slightly closer than the runner reckoned, which the
     strict rate check counts (< 1% over the margin); `violations_true_limits` must be zero and
     `max_speed_fraction` <= 1."""
@@ -634,7 +634,7 @@ def summarize(runner: Runner, station: SimStation, episodes: list[Episode], goal
 
 
 def run_sim(policy_dir: str, goals, out_dir: str | None = None, seed: int = 0,
-            distribution: str | None = None, realtime: bool = False, charge_compute: bool = True,
+            distribution: str | None = None, realtime: bool = False, charge_compute: bool = False,
             throw_delay_s: float = 0.3, config: RunnerConfig = RunnerConfig(),
             timing: str = "nominal", sync_launch: bool = False) -> dict:
     """Load an export (every check of deploy.export.load_export), build the simulated station

@@ -140,20 +140,22 @@ def reset(cfg: World, lay: Layout, key, launch_pos, launch_vel, launch_spin, aim
 
 def sensed_frame(cfg: World, lay: Layout, state: State, qpos, qvel):
     """[O] the frame the policy sees at tick state.t under the timing model (state.hist holds the
-    physics up to this tick): the true state for ticks the runner only logs (t < n_exec), else
-    each sensor's delivered samples (ttmjx.world.timing.read)."""
+    physics up to this tick): each sensor's samples delivered by the later of the tick and the
+    runner's trigger (ttmjx.world.timing.read). qpos, qvel: unused (the signature of `frame`)."""
     d = state.timing
     s = cfg.substeps
     j_now = state.t * s
     avail = jnp.maximum(j_now.astype(jnp.float32), d.trigger)
+    # The runner reads the newest joint sample once per tick (every 1 ms while it waits for the
+    # ball, so up to the trigger its samples are dense); the ball tracker hands over every sample.
+    prev = jnp.maximum((j_now - s).astype(jnp.float32), d.trigger)
     joints, _ = timing.read(cfg, state.hist[:, :8], j_now, avail, d.joint_latency,
                             timing.steps_per_sample(cfg, "joint_hz"), d.joint_phase, -(1 << 20), d.key,
-                            timing.JOINT)
+                            timing.JOINT, prev_avail=prev)
     ball, slope = timing.read(cfg, state.hist[:, 8:], j_now, avail, d.ball_latency,
                               timing.steps_per_sample(cfg, "tracker_hz"), jnp.int32(0), 0, d.key, timing.BALL)
     vel = slope / cfg.physics_dt if cfg.ball_velocity_obs else None
-    sensed = observation.make_frame(joints, ball, state.goal, vel, xp=jnp).astype(jnp.float32)
-    return jnp.where(state.t < d.n_exec, frame(cfg, lay, qpos, qvel, state.goal), sensed)
+    return observation.make_frame(joints, ball, state.goal, vel, xp=jnp).astype(jnp.float32)
 
 
 def observe(cfg: World, lay: Layout, state: State) -> Obs:

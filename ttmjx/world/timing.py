@@ -14,8 +14,10 @@ newest samples delivered by the time the runner reads them, evaluated at j and f
 Start. With a tracker rate the runner's episode starts at the ball's first tracker sample, so
 the ball has flown `lead` physics steps (uniform in [0, E_ball)) when the episode starts; the
 runner notices the ball once its second sample is delivered (`trigger`), and the ticks before
-that (n < n_exec) are logged but not executed: the robot holds. Their frames are the true state
-(the runner interpolates between samples that bracket them: < 0.1 mm from the truth).
+that (n < n_exec) are logged but not executed: the robot holds. Their frames are read like the others, from the samples delivered by the trigger (the
+runner may also interpolate toward a sample taken after the tick; the world, which has not
+simulated it yet, extrapolates: equal while the robot holds still and the tick falls after the
+ball's second sample, as at 100 Hz with a 125 Hz tracker).
 Commands: command c_n (tick n) starts its ramp `delay` steps after j and ramps over S steps.
 """
 from __future__ import annotations
@@ -30,7 +32,12 @@ from ttmjx.world import ballphysics
 from ttmjx.world.config import World
 
 BALL, JOINT = 0, 1          # sensor ids in the per-sample random draws
-CANDIDATES = 4              # newest samples considered per read (drops skip to older ones)
+CANDIDATES = 4              # newest samples considered per read at least (drops skip to older ones)
+
+
+def candidates(cfg: World, every: int) -> int:
+    """Samples considered per read: enough to reach back past the previous tick's read."""
+    return max(CANDIDATES, -(-cfg.substeps // every) + 3)
 
 
 class Draw(NamedTuple):
@@ -53,8 +60,9 @@ def steps_per_sample(cfg: World, name: str) -> int:
 def history_len(cfg: World) -> int:
     """H: physics steps of history a read can reach back (the longest delay, CANDIDATES samples,
     and one control step)."""
-    e = max(steps_per_sample(cfg, "tracker_hz"), steps_per_sample(cfg, "joint_hz"))
-    return int(math.ceil(cfg.timing.max_delay_s() / cfg.physics_dt)) + (CANDIDATES + 1) * e + cfg.substeps + 2
+    reach = max((candidates(cfg, e) + 1) * e for e in (steps_per_sample(cfg, "tracker_hz"),
+                                                         steps_per_sample(cfg, "joint_hz")))
+    return int(math.ceil(cfg.timing.max_delay_s() / cfg.physics_dt)) + reach + cfg.substeps + 2
 
 
 def command_len(cfg: World) -> int:
@@ -77,7 +85,7 @@ def draw(cfg: World, key) -> Draw:
                 action_delay=(jnp.float32(tm.action_delay_s / dt) + extra[2] / dt).astype(jnp.float32),
                 joint_phase=jax.random.randint(k_phase, (), 0, ej).astype(jnp.int32),
                 lead=jnp.asarray(lead, jnp.int32), trigger=trigger.astype(jnp.float32),
-                n_exec=jnp.floor(trigger / cfg.substeps).astype(jnp.int32), key=k_sample)
+                n_exec=jnp.ceil(trigger / cfg.substeps - 1e-6).astype(jnp.int32), key=k_sample)
 
 
 def fly(cfg: World, pos, vel, spin, steps):
@@ -97,21 +105,28 @@ def _uniform(key, sensor: int, m, salt: int):
     return jax.vmap(lambda mi: jax.random.uniform(jax.random.fold_in(k, mi)))(m + (1 << 20))
 
 
-def read(cfg: World, hist, j_now, avail, latency, every: int, phase, m_min, key, sensor: int):
+def read(cfg: World, hist, j_now, avail, latency, every: int, phase, m_min, key, sensor: int,
+         prev_avail=None):
     """What a sensor shows at tick time j_now, read at time `avail` (>= j_now).
 
     hist [H, d]: the signal at physics steps j_now - H + 1 .. j_now. Returns (value [d], slope [d]
-    per physics step). Samples later than j_now are not used (the world has not simulated them)."""
+    per physics step). Samples later than j_now are not used (the world has not simulated them).
+    prev_avail: for a sensor read as "the newest sample" once per tick (the runner's
+    Robot.read), the previous read's time: the line's older sample is the newest delivered by
+    then (if older than the newest now), not the sample just before the newest."""
     tm = cfg.timing
-    h = hist.shape[0]
+    h, c = hist.shape[0], candidates(cfg, every)
     newest = jnp.floor((jnp.minimum(avail - latency, j_now) - phase) / every).astype(jnp.int32)
-    m = newest - jnp.arange(CANDIDATES, dtype=jnp.int32)                      # [C], newest first
+    m = newest - jnp.arange(c, dtype=jnp.int32)                               # [C], newest first
     j = phase + m * every
     jitter = _uniform(key, sensor, m, 0) * (tm.jitter_s / cfg.physics_dt) if tm.jitter_s else 0.0
-    kept = _uniform(key, sensor, m, 1) >= tm.drop_prob if tm.drop_prob else jnp.ones(CANDIDATES, bool)
+    kept = _uniform(key, sensor, m, 1) >= tm.drop_prob if tm.drop_prob else jnp.ones(c, bool)
     ok = kept & (j + latency + jitter <= avail) & (m >= m_min)
     i1 = jnp.argmax(ok)
-    older = ok & (jnp.arange(CANDIDATES) > i1)
+    older = ok & (jnp.arange(c) > i1)
+    if prev_avail is not None:
+        seen = older & (j + latency + jitter <= prev_avail)
+        older = jnp.where(seen.any(), seen, older)
     i0 = jnp.argmax(older)
     at = lambda jj: hist[jnp.clip(h - 1 - (j_now - jj), 0, h - 1)]  # noqa: E731
     x1, x0 = at(j[i1]), at(j[i0])
