@@ -1,6 +1,7 @@
-"""Evaluation of trained policies: uniform goals or the five-goal protocol, no exploration
-noise; an ensemble plays the goals in equal blocks, one block per member. Scoring is the world's
-one goal-metrics function (ttmjx.world.goals)."""
+"""Evaluation of trained policies: uniform goals, the five-goal protocol or a user's goal set
+(eval.goalset), no exploration noise; an ensemble plays the goals in equal blocks, one block per
+member. Scoring is the world's one strict goal-metrics function (ttmjx.world.goals); `--out`
+writes the per-episode record (eval.report)."""
 from __future__ import annotations
 
 import math
@@ -8,13 +9,17 @@ import math
 import jax
 import numpy as np
 
+from eval.goalset import is_goal_file, load_goal_file
+from eval.report import check_out_dir, write_eval_dir
 from models.config import PolicyConfig
 from models.policy import ensemble_size, make_policy, member
+from training.budget import episodes_that_fit
 from training.checkpoint import load_checkpoint
 from ttmjx.world import thrower
 from ttmjx.world.backends import Backend, resolve_backend
 from ttmjx.world.config import THROW_DISTRIBUTIONS, World
 from ttmjx.world.goals import five_goals, goal_metrics, per_goal_metrics, uniform_goals
+from ttmjx.world.record import Trajectories
 
 
 def rollout_goals(world: World, pcfg: PolicyConfig, params, backend: Backend, key, goals, members=None):
@@ -31,24 +36,50 @@ def padded(goals: np.ndarray, members: int | None) -> np.ndarray:
     return goals[np.arange(total) % len(goals)]
 
 
-def evaluate_uniform(world: World, pcfg: PolicyConfig, params, backend: Backend, key, n_goals: int = 200,
-                     members: int | None = None) -> dict:
-    """goal_metrics over n_goals uniform goals on the opponent's half."""
+def uniform_run(world: World, pcfg: PolicyConfig, params, backend: Backend, key, n_goals: int = 200,
+                members: int | None = None) -> tuple[dict, Trajectories]:
+    """(goal_metrics, Trajectories [G]) over n_goals uniform goals on the opponent's half
+    (G: n_goals padded to a multiple of the members)."""
     k_goal, k_run = jax.random.split(key)
     goals = padded(np.asarray(uniform_goals(k_goal, n_goals, world.table), np.float32), members)
     tr = rollout_goals(world, pcfg, params, backend, k_run, goals, members)
-    return goal_metrics(tr.landing, goals, tr.hit)
+    return goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent), tr
+
+
+def evaluate_uniform(world: World, pcfg: PolicyConfig, params, backend: Backend, key, n_goals: int = 200,
+                     members: int | None = None) -> dict:
+    """goal_metrics over n_goals uniform goals on the opponent's half."""
+    return uniform_run(world, pcfg, params, backend, key, n_goals, members)[0]
+
+
+def five_run(world: World, pcfg: PolicyConfig, params, backend: Backend, key, per_goal: int = 40,
+             members: int | None = None) -> tuple[dict, Trajectories]:
+    """(metrics, Trajectories) of the five-goal protocol: per_goal attempts at each of goals A-E;
+    totals plus per goal."""
+    goals, names = five_goals(per_goal)
+    idx = padded(np.arange(len(goals)), members)
+    tr = rollout_goals(world, pcfg, params, backend, key, goals[idx], members)
+    out = goal_metrics(tr.landing, goals[idx], tr.hit, tr.on_opponent)
+    out["per_goal"] = per_goal_metrics(tr.landing, goals[idx], tr.hit, tr.on_opponent, [names[i] for i in idx])
+    return out, tr
 
 
 def evaluate_five(world: World, pcfg: PolicyConfig, params, backend: Backend, key, per_goal: int = 40,
                   members: int | None = None) -> dict:
     """The five-goal protocol: per_goal attempts at each of goals A-E; totals plus per goal."""
-    goals, names = five_goals(per_goal)
-    idx = padded(np.arange(len(goals)), members)
-    tr = rollout_goals(world, pcfg, params, backend, key, goals[idx], members)
-    out = goal_metrics(tr.landing, goals[idx], tr.hit)
-    out["per_goal"] = per_goal_metrics(tr.landing, goals[idx], tr.hit, [names[i] for i in idx])
-    return out
+    return five_run(world, pcfg, params, backend, key, per_goal, members)[0]
+
+
+def goal_set_run(world: World, pcfg: PolicyConfig, params, backend: Backend, key, goals,
+                 members: int | None = None) -> tuple[dict, Trajectories]:
+    """(goal_metrics, Trajectories [N]) of one attempt at each of the user's goals [N, 2]. The
+    throws are those of a uniform evaluation with the same key; an ensemble's equal blocks are
+    filled by repeating goals, and those extra episodes are dropped."""
+    goals = np.asarray(goals, np.float32)
+    _, k_run = jax.random.split(key)
+    tr = rollout_goals(world, pcfg, params, backend, k_run, padded(goals, members), members)
+    tr = Trajectories(*(np.asarray(x)[:len(goals)] for x in tr))
+    return goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent), tr
 
 
 def training_evaluation(cfg):
@@ -62,16 +93,24 @@ def training_evaluation(cfg):
 
 def evaluate_checkpoint(path: str, goals: str = "200", per_goal: int = 40, distribution: str | None = None,
                         backend: str | None = None, seed: int = 1234, member_index: int | None = None,
-                        step: int | None = None) -> dict:
-    """`ttmjx eval`: metrics of a run's checkpoint (its moving-average policy) on `goals` uniform
-    goals or 'five' (per_goal attempts at each of A-E); throws of the run's distribution or
-    `distribution`; one member alone with member_index."""
-    n_goals = _goal_count(goals)
+                        step: int | None = None, out: str | None = None) -> dict:
+    """`ttmjx eval`: metrics of a run's checkpoint (its moving-average policy) on `goals`: a number
+    of uniform goals, 'five' (per_goal attempts at each of A-E) or a goal file (eval.goalset, one
+    attempt per goal); throws of the run's distribution or `distribution`; one member alone with
+    member_index. With `out`, the metrics, one row per episode and the ball tracks are written
+    there (eval.report)."""
+    n_goals = None if is_goal_file(goals) else _goal_count(goals)
     if distribution is not None and distribution not in THROW_DISTRIBUTIONS:
         raise ValueError(f"distribution {distribution!r}; expected one of {THROW_DISTRIBUTIONS}")
+    if out is not None:
+        check_out_dir(out)
     loaded = load_checkpoint(path, step)
     cfg = loaded.cfg
     world = cfg.world if distribution is None else cfg.world.with_throws(distribution)
+    goal_set = load_goal_file(goals, world.table) if is_goal_file(goals) else None
+    if goal_set is not None and len(goal_set) > episodes_that_fit(World()):
+        raise ValueError(f"goal file {goals!r} holds {len(goal_set)} goals; expected at most "
+                         f"{episodes_that_fit(World())} (what fits in this device's memory)")
     be = Backend(world, resolve_backend(backend or cfg.backend))
     members, params = cfg.train.members, loaded.params
     if member_index is not None:
@@ -79,23 +118,28 @@ def evaluate_checkpoint(path: str, goals: str = "200", per_goal: int = 40, distr
             raise ValueError(f"--member {member_index} is out of range: the run has {members} members")
         members, params = None, member(params, member_index)
     key = jax.random.PRNGKey(seed)
-    if n_goals is None:
-        out = evaluate_five(world, cfg.policy, params, be, key, per_goal, members)
+    if goal_set is not None:
+        res, tr = goal_set_run(world, cfg.policy, params, be, key, goal_set, members)
+    elif n_goals is None:
+        res, tr = five_run(world, cfg.policy, params, be, key, per_goal, members)
     else:
-        out = evaluate_uniform(world, cfg.policy, params, be, key, n_goals, members)
-    return {**out, "distribution": world.throws.name, "trajectories": int(loaded.ck.counters.trajectories),
-            "step": loaded.step}
+        res, tr = uniform_run(world, cfg.policy, params, be, key, n_goals, members)
+    res = {**res, "distribution": world.throws.name, "trajectories": int(loaded.ck.counters.trajectories),
+           "step": loaded.step}
+    if out is not None:
+        write_eval_dir(out, res, tr, world)
+    return res
 
 
 def _goal_count(goals: str) -> int | None:
     """'five' -> None; a positive number of uniform goals (at most what fits in memory) -> that number."""
-    from training.budget import episodes_that_fit
     if goals == "five":
         return None
     try:
         n = int(goals)
     except ValueError:
-        raise ValueError(f"--goals must be a number of uniform goals or 'five', got {goals!r}") from None
+        raise ValueError(f"--goals {goals!r}: expected a number of uniform goals, 'five', or a goal file "
+                         f"(.csv with a header row x,y, or .npy of shape [N, 2])") from None
     most = episodes_that_fit(World())
     if not 1 <= n <= most:
         raise ValueError(f"--goals {n}: expected between 1 and {most} (what fits in this device's memory)")

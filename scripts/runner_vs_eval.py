@@ -116,7 +116,8 @@ def summary(tr, episodes, rows: list[dict], n_goals: int) -> dict:
     diverged = [r["diverges"]["step"] for r in rows if r["diverges"] is not None]
     return {
         "episodes": len(episodes), "goals": n_goals,
-        "eval": {**goal_metrics(tr.landing, tr.goal, tr.hit), "on_opponent": float(np.mean(tr.on_opponent))},
+        "eval": {**goal_metrics(tr.landing, tr.goal, tr.hit, tr.on_opponent),
+                 "on_opponent": float(np.mean(tr.on_opponent))},
         "runner": goal_summary(episodes),
         "diverged": len(diverged), "first_divergence_steps": sorted(diverged),
         "same_hit": int(sum(a == b for a, b in (r["hit"] for r in rows))),

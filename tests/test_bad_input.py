@@ -6,6 +6,7 @@ import io
 import os
 import shutil
 
+import numpy as np
 import pytest
 
 from ttmjx import cli
@@ -39,6 +40,8 @@ def cases():
         ("train --preset tiny", "--train.ema-decay", ["1.5", "-0.1"]),
         ("train --preset tiny", "--train.demo-fraction", ["2"]),
         ("train --preset tiny", "--train.action-noise", ["-0.1"]),
+        ("train --preset tiny", "--train.practice-goal-margin", ["-0.1", "nan", "5"]),
+        ("train --preset tiny", "--train.practice-keep", ["all", ""]),
         ("train --preset tiny", "--episodes-per-ssp", ["33", "0"]),
         ("train --preset tiny", "--world.control-hz", ["-10", "0"]),
         ("train --preset tiny", "--world.episode-s", ["0", "-1"]),
@@ -53,7 +56,11 @@ def cases():
         ("train --preset tiny --run-dir {tmp}/r", "--data", ["{tmp}/missing", "{empty}"]),
         ("train --preset tiny", "--run-dir", ["{file}"]),
         ("eval", "", ["{tmp}/missing", "{file}", "{empty}"]),
-        ("eval " + RUN, "--goals", ["abc", "0", "-3", "{tmp}/goals.csv"]), ("eval " + RUN, "--per-goal", ["0"]),
+        ("eval " + RUN, "--goals", ["abc", "0", "-3", "{tmp}/goals.csv", "{tmp}/missing.csv", "{tmp}/off_table.csv",
+                                    "{tmp}/own_half.csv", "{tmp}/no_header.csv", "{tmp}/wide.npy", "{tmp}/nan.npy",
+                                    "{tmp}/goals.txt", "{empty}"]),
+        ("eval " + RUN + " --goals {tmp}/good.csv", "--out", ["{file}", "{tmp}", "{file}/sub"]),
+        ("eval " + RUN, "--per-goal", ["0"]),
         ("eval " + RUN, "--member", ["-1", "99"]), ("eval " + RUN, "--backend", ["x"]),
         ("eval " + RUN, "--distribution", ["wide"]), ("eval " + RUN, "--seed", ["abc"]),
         ("export " + RUN, "--out", ["{file}"]), ("export --out {tmp}/e", "", ["{tmp}/missing", "{empty}"]),
@@ -69,6 +76,12 @@ def cases():
         ("robot run --policy {empty} --station fake --goals five", "--stale-ms", ["0", "-5", "nan"]),
         ("robot run --policy {empty} --station fake --goals five", "--out", ["{file}", "{tmp}"]),
         ("robot run --policy {empty} --station sim --goals five", "--distribution", ["wide"]),
+        ("ablate", "", ["nope", ""]), ("ablate demos", "--seeds", ["0", "-1", "abc"]),
+        ("ablate demos", "--scale", ["huge", "gpu"]), ("ablate demos --scale tiny", "--trajectories", ["0", "-5"]),
+        ("ablate demos --scale tiny", "--cells", ["nope", "0:99", "3:1", "", ":", "d10,x"]),
+        ("ablate noise --scale tiny --plan", "--cells", ["d10", "20"]),
+        ("ablate demos --scale tiny", "--out", ["{file}"]),
+        ("ablate demos --scale tiny --out {empty}", "--report", ["--report"]),     # nothing finished yet
         ("robot bench", "--hidden", ["0"]), ("robot bench", "--layers", ["0"]), ("robot bench", "--members", ["0"]),
         ("robot bench", "--steps", ["0"]), ("robot bench", "--threads", ["0"]), ("robot bench", "--kind", ["gru"]),
         ("robot bench", "--engine", ["torch"]), ("robot bench", "--obs-size", ["14"]), ("robot bench", "--frame-stack", ["0"]),
@@ -91,6 +104,13 @@ def scratch(tmp_path, monkeypatch):
     (tmp_path / "empty").mkdir()
     (tmp_path / "a_file").write_text("not a dataset\n")
     (tmp_path / "goals.csv").write_text("x,y\n0.7,nan\n")
+    (tmp_path / "good.csv").write_text("x,y\n0.7,0.0\n")
+    (tmp_path / "off_table.csv").write_text("x,y\n0.7,0.0\n0.7,0.9\n")       # beyond a side line
+    (tmp_path / "own_half.csv").write_text("x,y\n-0.5,0.0\n")
+    (tmp_path / "no_header.csv").write_text("0.7,0.0\n")
+    (tmp_path / "goals.txt").write_text("x,y\n0.7,0.0\n")                   # neither .csv nor .npy
+    np.save(tmp_path / "wide.npy", np.zeros((4, 3)))
+    np.save(tmp_path / "nan.npy", np.array([[0.7, 0.0], [np.nan, 0.1]]))
     monkeypatch.chdir(tmp_path)
     return tmp_path
 

@@ -93,25 +93,30 @@ def test_rollout_adapter_matches_training_sequence(kind, obs_size, env_width):
             policy.apply(params, (), Obs(obs[0], vel[0], jnp.zeros((8, 13)), 0), jax.random.PRNGKey(0))
 
 
-def test_action_noise_is_held_per_episode():
-    cfg = PolicyConfig("lstm", hidden=8, layers=1)
+def test_action_noise_is_one_hidden_offset_per_episode():
+    """z ~ U(-b a_std, b a_std), one per episode, different across episodes; the inner policy sees
+    the joints (of the frame and of the stack) moved by -z and its action is sent moved by +z."""
+    cfg = PolicyConfig("framestack", hidden=8, layers=1, frame_stack=3)
     params = member(init_ensemble(jax.random.PRNGKey(0), cfg, random_norm(jax.random.PRNGKey(1), 13), 1), 0)
     base, noisy = make_policy(cfg), with_action_noise(make_policy(cfg), 0.5)
-    obs = jax.random.normal(jax.random.PRNGKey(2), (6, 13))
+    frames = jax.random.normal(jax.random.PRNGKey(2), (6, 3, 13))
+    obs = lambda i, shift: Obs(frames[i, -1] + shift, jnp.zeros(3), frames[i] + shift, i)  # noqa: E731
 
-    def episode(policy, key):
+    def episode(key):
         def step(carry, i):
-            o = Obs(obs[i], jnp.zeros(3), jnp.zeros((8, 13)), i)
-            return policy.apply(params, carry, o, jax.random.fold_in(key, i))
-        return jax.lax.scan(step, policy.init(params, key), jnp.arange(6))[1]   # [6, 8]
+            carry, a = noisy.apply(params, carry, obs(i, 0.0), jax.random.fold_in(key, i))
+            return carry, (a, carry[1])
+        return jax.lax.scan(step, noisy.init(params, key), jnp.arange(6))[1]   # ([6, 8], [6, 8])
 
-    keys = jax.random.split(jax.random.PRNGKey(3), 4)
-    clean = episode(base, keys[0])
-    diff = jax.vmap(lambda k: episode(noisy, k))(keys) - clean               # [4 episodes, 6, 8]
-    np.testing.assert_allclose(diff, np.broadcast_to(diff[:, :1], diff.shape), atol=1e-5)  # same z every step
-    z = np.asarray(diff[:, 0])
+    actions, zs = jax.vmap(episode)(jax.random.split(jax.random.PRNGKey(3), 4))
+    np.testing.assert_array_equal(zs, np.broadcast_to(zs[:, :1], zs.shape))    # held all episode
+    z = np.asarray(zs[:, 0])
     assert len({tuple(np.round(r, 5)) for r in z}) == 4                        # differs across episodes
-    assert (np.abs(z) <= 0.5 * np.asarray(params.norm.act_std) + 1e-5).all() and np.abs(z).max() > 0
+    assert (np.abs(z) <= 0.5 * np.asarray(params.norm.act_std) + 1e-6).all() and np.abs(z).max() > 0
+    for e in range(4):
+        shift = jnp.zeros(13).at[:8].set(-z[e])                                # joints only
+        want = jnp.stack([base.apply(params, (), obs(i, shift), None)[1] for i in range(6)]) + z[e]
+        np.testing.assert_allclose(actions[e], want, rtol=1e-5, atol=1e-5)
 
 
 def test_ensemble_policies_vmap_over_members():

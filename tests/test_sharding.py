@@ -37,8 +37,12 @@ EXACT = ("iteration", "phase", "trajectories", "updates", "cache_size", "eval_go
 
 
 def tiny(demo_dir, run_dir, **kw):
+    """tiny with practice as before_renovation.json was recorded (on-table goals, near-half keep:
+    tests/test_trainer.py RECORDED_PRACTICE)."""
     from training import runconfig
-    return dataclasses.replace(runconfig.tiny(), demo_dir=demo_dir, run_dir=str(run_dir), **kw)
+    base = runconfig.tiny()
+    kw.setdefault("train", dataclasses.replace(base.train, practice_goal_margin=0.0, practice_keep="near_half"))
+    return dataclasses.replace(base, demo_dir=demo_dir, run_dir=str(run_dir), **kw)
 
 
 def rows(run_dir):

@@ -34,8 +34,17 @@ def demo_dir(tmp_path_factory):
     return d
 
 
+# Practice as tests/data/before_renovation.json was recorded: goals on the table, only hits
+# landing near the opponent's half kept and the integrating action noise (the defaults since
+# issue #11 aim 0.2 m beyond the edges, keep every hit and hide the noise from the policy, which
+# would change the run's numbers).
+RECORDED_PRACTICE = {"practice_goal_margin": 0.0, "practice_keep": "near_half", "action_noise_form": "integrating"}
+
+
 def tiny(demo_dir, run_dir, **kw):
-    return dataclasses.replace(runconfig.tiny(), demo_dir=demo_dir, run_dir=str(run_dir), **kw)
+    base = runconfig.tiny()
+    kw.setdefault("train", dataclasses.replace(base.train, **RECORDED_PRACTICE))
+    return dataclasses.replace(base, demo_dir=demo_dir, run_dir=str(run_dir), **kw)
 
 
 def final_params(run_dir):
@@ -96,10 +105,20 @@ def test_tiny_training_learns_to_return_balls_above_its_start(trained, demo_dir,
 
 def test_same_seed_same_numbers_as_before_the_renovation(trained):
     """The metrics of the tiny run equal those recorded with the code before the One-way house
-    renovation (tests/data/before_renovation.json): same losses, practice and evaluation."""
+    renovation (tests/data/before_renovation.json): same losses, practice and evaluation. The
+    success numbers (eval_*, practice_within_*) were re-recorded for the strict metric of issue
+    #11 (the file's "changed" note); strict success never exceeds the old lenient one, and the
+    hit rates, kept episodes and losses are the original recording."""
     run_dir, _ = trained
     rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"))]
     want = BEFORE["tiny_metrics"]
+    for lenient in BEFORE["lenient_before_issue11"]["tiny_metrics"]:
+        strict = want[lenient["iteration"]]
+        for k, v in lenient.items():
+            if k.endswith(("hit_rate", "_goals", "_kept")):
+                assert strict[k] == v, k
+            elif k.endswith(("within_30cm", "within_20cm")):
+                assert strict[k] <= v, k
     assert [sorted(set(r) - {"seconds"}) for r in rows] == [sorted(r) for r in want]
     for got, exp in zip(rows, want):
         for k, v in exp.items():
@@ -117,10 +136,12 @@ def test_a_checkpoint_written_before_the_renovation_loads_and_evaluates_the_same
     assert loaded.cfg.preset == "tiny" and loaded.cfg.train.capacity == 320 and loaded.step == 6
     got = evaluate_uniform(loaded.cfg.world, loaded.cfg.policy, loaded.params, Backend(loaded.cfg.world, "c"),
                            jax.random.PRNGKey(1234), 40, loaded.cfg.train.members)
-    want = BEFORE["checkpoint_eval_seed1234_40goals"]
-    exact = ("within_30cm", "within_20cm", "hit_rate", "goals")
+    want = BEFORE["checkpoint_eval_seed1234_40goals"]      # strict success (issue #11)
+    exact = ("within_30cm", "within_20cm", "hit_rate", "on_table_rate", "goals")
     assert {k: got[k] for k in exact} == {k: want[k] for k in exact}
     assert got["mean_dist"] == pytest.approx(want["mean_dist"], rel=1e-12)
+    lenient = BEFORE["lenient_before_issue11"]["checkpoint_eval_seed1234_40goals"]
+    assert got["hit_rate"] == lenient["hit_rate"] and got["within_30cm"] <= lenient["within_30cm"]
 
 
 def test_the_loader_names_the_file_and_reason_it_cannot_read(tmp_path):

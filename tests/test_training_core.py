@@ -93,6 +93,50 @@ def test_keep_for_training_drops_misses_and_landings_beyond_the_margin(traj):
     np.testing.assert_array_equal(keep_for_training(traj, TABLE, 0.0), traj.hit & on_table)
 
 
+def test_practice_keeps_every_hit_by_default_and_the_near_half_filter_on_request(traj):
+    """Paper: a practice episode is dropped only if the ball was not hit; "near_half" is the
+    filter this project used before (hits landing within goal_margin of the half). Checked on
+    the append a practice round compiles (training.practice.Practice)."""
+    from training.practice import Practice
+    from ttmjx.world.backends import Backend
+    from ttmjx.world.config import World
+    world = World()
+    assert traj.hit.any() and np.isfinite(traj.landing[traj.hit]).all()
+    near = keep_for_training(traj, TABLE, 0.3)
+    assert (traj.hit & ~near).any(), "the fixture should hold hits landing far off the table"
+    for keep, expected in [("hits", traj.hit), ("near_half", near)]:
+        tcfg = TrainConfig(practice_keep=keep, window=8)
+        parts = Practice(world, PolicyConfig(), tcfg, Backend(world, "c"), episodes=8, train_steps=0)._pure_parts(None)
+        cache = parts.append(empty_cache(64, traj.valid.shape[1]), traj)
+        assert int(cache.count) == int(expected.sum()), keep
+    assert TrainConfig().practice_keep == "hits" and TrainConfig().practice_goal_margin == 0.2
+
+
+def test_practice_goals_use_the_configured_margin():
+    from training.practice import Practice
+    from ttmjx.world.backends import Backend
+    from ttmjx.world.config import World
+    world = World()
+    for margin in (0.0, 0.2, 0.5):
+        tcfg = TrainConfig(practice_goal_margin=margin)
+        parts = Practice(world, PolicyConfig(), tcfg, Backend(world, "c"), episodes=512, train_steps=0)._pure_parts(None)
+        g = np.asarray(parts.goals(jax.random.PRNGKey(1)))
+        assert g[:, 0].min() >= 0 and g[:, 0].max() <= TABLE.half_length + margin + 1e-6
+        assert np.abs(g[:, 1]).max() <= TABLE.half_width + margin + 1e-6
+        beyond = np.maximum(g[:, 0] - TABLE.half_length, np.abs(g[:, 1]) - TABLE.half_width).max()
+        assert beyond > 0.5 * margin if margin else beyond <= 0, (margin, beyond)
+
+
+@pytest.mark.parametrize("field,value,match", [
+    ("practice_goal_margin", -0.1, r"practice_goal_margin=-0.1, expected metres in \[0, 1.0\]"),
+    ("practice_goal_margin", float("nan"), "practice_goal_margin=nan"),
+    ("practice_goal_margin", 1.5, "practice_goal_margin=1.5"),
+    ("practice_keep", "all", r"practice_keep='all', expected one of \('hits', 'near_half'\)")])
+def test_practice_options_are_bounded(field, value, match):
+    with pytest.raises(ValueError, match=match):
+        TrainConfig(**{field: value})
+
+
 # --- the cache ------------------------------------------------------------------------------
 
 def test_cache_append_keeps_only_hit_episodes():

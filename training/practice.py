@@ -1,6 +1,10 @@
 """Self-supervised practice (Algorithm 1): roll the current policies out toward random goals,
 relabel every hit with where the ball landed, append to the one shared cache, train S steps.
 
+Practice goals are uniform over the opponent's half extended TrainConfig.practice_goal_margin
+beyond the table's edges; which episodes join the cache is TrainConfig.practice_keep (every hit,
+as the paper, by default). The round's statistics use the world's one strict goal metric.
+
 `practice_round` is the round, written once. On MJX all of it is pure and `Practice` compiles it
 as ONE jit-compiled function; on a CPU the rollouts step MuJoCo C on the host, so the same
 round runs eagerly around the compiled pieces (goals, append, the S updates).
@@ -18,7 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from models.config import PolicyConfig
-from models.policy import make_policy, with_action_noise
+from models.policy import make_policy, with_action_noise, with_integrating_action_noise
 from training.cache import Cache, add_episodes
 from training.config import TrainConfig
 from training.mesh import Layout, single_device
@@ -33,6 +37,7 @@ from ttmjx.world.record import Trajectories
 class PracticeStats(NamedTuple):
     """Scalars of one practice round (with exploration noise, toward uniform goals)."""
     hit_rate: jax.Array
+    on_table_rate: jax.Array  # first bounce after the hit on the opponent's half
     within_30cm: jax.Array
     within_20cm: jax.Array
     kept: jax.Array          # episodes appended to the cache
@@ -48,14 +53,18 @@ class RoundParts(NamedTuple):
 
 
 def practice_policy(pcfg: PolicyConfig, tcfg: TrainConfig):
-    """The rollout policy of practice: the member's policy plus held-per-episode action noise."""
+    """The rollout policy of practice: the member's policy plus held-per-episode action noise
+    (TrainConfig.action_noise_form)."""
     base = make_policy(pcfg)
-    return with_action_noise(base, tcfg.action_noise) if tcfg.action_noise > 0 else base
+    if tcfg.action_noise <= 0:
+        return base
+    noisy = with_action_noise if tcfg.action_noise_form == "offset" else with_integrating_action_noise
+    return noisy(base, tcfg.action_noise)
 
 
 def practice_stats(traj: Trajectories, kept_before, kept_after) -> PracticeStats:
-    s = goal_stats(traj.landing, traj.goal, traj.hit, xp=jnp)
-    return PracticeStats(s["hit_rate"], s["within_30cm"], s["within_20cm"],
+    s = goal_stats(traj.landing, traj.goal, traj.hit, traj.on_opponent, xp=jnp)
+    return PracticeStats(s["hit_rate"], s["on_table_rate"], s["within_30cm"], s["within_20cm"],
                          (kept_after - kept_before).astype(jnp.int32))
 
 
@@ -102,9 +111,11 @@ class Practice:
         self._round = self._compiled_round(pure) if pure else self._host_round(policy)
 
     def _pure_parts(self, rollout) -> RoundParts:
-        world, m, margin = self.world, self.episodes, self.tcfg.goal_margin
-        return RoundParts(goals=lambda k: uniform_goals(k, m, world.table), rollout=rollout,
-                          append=lambda c, t: add_episodes(c, t, world.table, margin), train=self.train,
+        """Practice goals beyond the table by practice_goal_margin; kept episodes by practice_keep."""
+        world, m, tcfg = self.world, self.episodes, self.tcfg
+        goal_margin, keep_margin = tcfg.practice_goal_margin, tcfg.practice_keep_margin
+        return RoundParts(goals=lambda k: uniform_goals(k, m, world.table, goal_margin), rollout=rollout,
+                          append=lambda c, t: add_episodes(c, t, world.table, keep_margin), train=self.train,
                           place=self.layout.constrain_throws)
 
     def _compiled_round(self, pure: RoundParts):

@@ -89,8 +89,9 @@ def _cpu_default() -> RunConfig:
         world=World().with_throws("narrow"),
         policy=PolicyConfig(kind="framestack", hidden=256, layers=2, obs_size=13, frame_stack=8),
         # The acting policy is the moving average of the weights (ema_decay): single iterates
-        # swing by 15-20 points between evaluations. lr 1e-3 collapsed during practice and action
-        # noise b = 0.05 degraded it (docs/RESULTS.md).
+        # swing by 15-20 points between evaluations. lr 1e-3 collapsed during practice (docs/RESULTS.md).
+        # Action noise is off: b = 0.05 degraded runs in its old form, which the closed loop
+        # integrated; `ttmjx ablate noise` measures the current, non-integrating form.
         train=TrainConfig(window=96, batch_size=32, learning_rate=3e-4, members=2, capacity=16384,
                           action_noise=0.0, ema_decay=0.995),
         demos=1000, pretrain_steps=2000, steps_between_ssp=200, episodes_per_ssp=200,
@@ -124,8 +125,10 @@ def paper_sim_new() -> RunConfig:
     The frames carry the ball velocity ([8, 16], as the LSTM preset's 16 values): with the
     paper's [8, 13] (positions only) GCBC on any-ball throws lands 3% within 30 cm and hits 31%;
     with the velocity, 23% and 74% (docs/RESULTS.md). The paper's action noise is off: at
-    b = 0.05 it held this run at 25% within 30 cm where b = 0 reached 57% (--train.action-noise B
-    turns it on)."""
+    b = 0.05 it held this run at 25% within 30 cm where b = 0 reached 57%, but that was the old
+    form (a + z with the true joints observed), which the closed loop integrated into a drift of
+    tens of |z|. The noise is now a hidden calibration offset (models.policy.with_action_noise);
+    `ttmjx ablate noise` measures that form (--train.action-noise B turns it on)."""
     return RunConfig(
         preset="paper-sim-new",
         world=World(ball_velocity_obs=True).with_throws("any"),

@@ -21,6 +21,7 @@ from typing import Annotated, Any, Callable, ClassVar, Literal, NamedTuple, NoRe
 import tyro
 
 from deploy.cli import STATIONS
+from eval.ablate import ABLATION_NAMES, SCALE_NAMES
 from training.runconfig import PRESET_NAMES, RunConfig, preset
 from ttmjx.world.config import CONTROL_RATES, THROW_DISTRIBUTIONS, World
 from ttmjx.world.files import json_safe
@@ -201,12 +202,16 @@ class TrainArgs(Report):
 class EvalArgs(Report):
     """Goal-reaching metrics of a run's checkpoint (its moving-average policy)."""
     BOUNDS: ClassVar[dict] = {"per_goal": (1, batch_limit), "member": (0, None), "step": (0, None)}
+    NEW_DIRS: ClassVar[tuple] = ("out",)
     run: RunPath
     """Run directory (or its checkpoints/ directory)."""
     distribution: Literal[THROW_DISTRIBUTIONS] | None = None
     """Throws; None: the run's."""
     goals: str = "200"
-    """Number of uniform goals over the opponent's half, or 'five' for goals A-E."""
+    """Number of uniform goals over the opponent's half, 'five' for goals A-E, or a goal file (.csv
+    with a header row x,y, or .npy [N, 2]; goals on the opponent's half; one attempt each)."""
+    out: str | None = None
+    """New or empty directory for summary.json, episodes.csv and tracks.npz (docs/DATA.md)."""
     per_goal: int = 40
     """Attempts per goal with --goals five."""
     backend: Backend | None = None
@@ -217,6 +222,31 @@ class EvalArgs(Report):
     """Evaluate one ensemble member alone; None: the whole ensemble."""
     step: int | None = None
     """Checkpoint step; None: the newest intact one."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class AblateArgs(Report):
+    """One of the paper's simulated ablations: every (variant, seed) cell a training run, then a
+    markdown table (mean +- 95% interval over seeds), learning curves and landing maps
+    (eval/ablate.py ABLATIONS lists the variants). The same command resumes: finished cells are
+    skipped, a half-finished one resumes from its checkpoint."""
+    BOUNDS: ClassVar[dict] = {"seeds": (1, 1000), "trajectories": (1, None)}
+    name: Annotated[Literal[ABLATION_NAMES], tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
+    """The ablation: demos, noise, ensembles, inputs, bootstrap or practice."""
+    scale: Literal["auto", *SCALE_NAMES] = "auto"
+    """tiny (tests), cpu (2 CPU cores) or full (paper-sim-like, one GPU per cell); auto: full on an accelerator."""
+    seeds: int = 5
+    """Seeds per variant (0..N-1)."""
+    cells: str | None = None
+    """Run only these cells: indices (3), ranges (0:3, 4:) or variant names, comma-separated; --plan lists them."""
+    trajectories: int | None = None
+    """Total trajectories per cell; None: the scale's."""
+    out: str | None = None
+    """Ablation directory; None: ablations/NAME-SCALE."""
+    report: Flag = False
+    """Only (re)build the table, curves, landing maps and summary from the finished cells."""
+    plan: Flag = False
+    """List the cells (index, name, finished / partial / to do) and exit."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -413,12 +443,37 @@ def train(a: TrainArgs) -> None:
 
 def evaluate(a: EvalArgs) -> None:
     from eval.evaluate import evaluate_checkpoint
-    out = evaluate_checkpoint(a.run, a.goals, a.per_goal, a.distribution, a.backend, a.seed, a.member, a.step)
+    out = evaluate_checkpoint(a.run, a.goals, a.per_goal, a.distribution, a.backend, a.seed, a.member, a.step,
+                              out=a.out)
     text = table(out, skip=("per_goal",))
     for g, m in out.get("per_goal", {}).items():
         text += (f"\ngoal {g}: <=30cm {m['within_30cm']:.0%} <=20cm {m['within_20cm']:.0%} "
-                 f"hit {m['hit_rate']:.0%}")
+                 f"hit {m['hit_rate']:.0%} on table {m['on_table_rate']:.0%}")
+    if a.out:
+        text += f"\nwrote {a.out}/summary.json, episodes.csv, tracks.npz"
     report(a, out, text)
+
+
+def ablate(a: AblateArgs) -> None:
+    from eval import ablate as ablations
+    scale = ablations.resolve_scale(a.scale)
+    out = a.out or ablations.default_out(a.name, scale)
+    if a.plan:
+        ablations.plan(a.name, scale, a.seeds, out, a.cells, a.trajectories)   # refuses what would fail
+        print("\n".join(ablations.status(out, a.name, a.seeds)))
+        return
+    command = " ".join(["ttmjx ablate", a.name, "--scale", scale, "--seeds", str(a.seeds)]
+                       + (["--trajectories", str(a.trajectories)] if a.trajectories else [])
+                       + (["--out", a.out] if a.out else []))
+    if a.report:
+        summary = ablations.build_report(a.name, scale, out, command)
+    else:
+        summary = ablations.run(a.name, scale, a.seeds, out, a.cells, a.trajectories, progress=not a.json,
+                                command=command)
+    with open(summary["outputs"]["table"]) as f:
+        report(a, summary, f.read() + f"\nwrote {out}/ (table.md, curves.png, landings/, summary.json)")
+    if summary.get("stopped_by_signal"):
+        sys.exit(128 + summary["stopped_by_signal"])   # the shell's convention, as `ttmjx train`
 
 
 def export(a: ExportArgs) -> None:
@@ -500,6 +555,7 @@ COMMANDS: dict[str, Command] = {
     "train": Command(TrainArgs, train, "GoalsEye training: demonstrations, GCBC, self-practice, evaluation",
                      parse_train),
     "eval": Command(EvalArgs, evaluate, "goal-reaching metrics of a run or checkpoint"),
+    "ablate": Command(AblateArgs, ablate, "a paper ablation: cells of (variant, seed) runs -> table, curves, landing maps"),
     "export": Command(ExportArgs, export, "safetensors weights + contract + golden self-test + ONNX graph for the robot runner"),
     "robot run": Command(RobotRunArgs, robot_run, "the robot runner: play an exported policy on a station"),
     "robot sweep": Command(RobotSweepArgs, robot_sweep, "strict success against added ball and command latency"),

@@ -1,6 +1,9 @@
 """Goals and how reaching them is scored: the one uniform goal sampler, the five-goal protocol
 and the one goal-metrics function, used by practice, evaluation and the robot runner alike.
 
+Success is strict (issue #11): the ball was hit, its first bounce after the hit was on the
+opponent's half, and that bounce is within 30 (20) cm of the goal (`scored_distance`).
+
 Goals and landings are (x, y) on the table top in the table frame (ttmjx.world.config): the
 opponent's half is 0 <= x <= half_length, |y| <= half_width. Numpy-only at import; functions that
 must run under jit take xp=jax.numpy.
@@ -24,17 +27,28 @@ FIVE_GOALS = {
 RADII = (0.30, 0.20)      # the paper's success radii (m)
 
 
-def goals_from_unit(u, table: Table, xp=np):
-    """[n, 2] uniform numbers in [0, 1) -> [n, 2] goals uniform over the opponent's half."""
-    return xp.stack([u[:, 0] * table.half_length, (2 * u[:, 1] - 1) * table.half_width], 1)
+def goals_from_unit(u, table: Table, xp=np, margin: float = 0.0):
+    """[n, 2] uniform numbers in [0, 1) -> [n, 2] goals uniform over the opponent's half, extended
+    `margin` metres beyond its end line and both side lines (never over the net): x in
+    [0, half_length + margin], |y| <= half_width + margin. margin=0: the half itself."""
+    hl, hw = table.half_length + margin, table.half_width + margin
+    return xp.stack([u[:, 0] * hl, (2 * u[:, 1] - 1) * hw], 1)
 
 
-def uniform_goals(key, n: int, table: Table):
-    """[n, 2] goals uniform over the opponent's half from a JAX key (jittable; n static). The
-    draw practice, evaluation and `ttmjx robot run --goals uniform` share."""
+def uniform_goals(key, n: int, table: Table, margin: float = 0.0):
+    """[n, 2] goals uniform over the opponent's half (extended by `margin`, goals_from_unit) from a
+    JAX key (jittable; n static). The draw practice, evaluation and `ttmjx robot run --goals
+    uniform` share; evaluation keeps margin=0 (goals on the table)."""
     import jax
     import jax.numpy as jnp
-    return goals_from_unit(jax.random.uniform(key, (n, 2)), table, jnp)
+    return goals_from_unit(jax.random.uniform(key, (n, 2)), table, jnp, margin)
+
+
+def off_half(goals, table: Table) -> np.ndarray:
+    """[B] bool: goal [B, 2] lies outside the opponent's half (NaN counts as outside)."""
+    g = np.asarray(goals, np.float64)
+    inside = (g[:, 0] >= 0) & (g[:, 0] <= table.half_length) & (np.abs(g[:, 1]) <= table.half_width)
+    return ~inside
 
 
 def five_goals(per_goal: int) -> tuple[np.ndarray, list[str]]:
@@ -43,34 +57,46 @@ def five_goals(per_goal: int) -> tuple[np.ndarray, list[str]]:
     return np.array([FIVE_GOALS[n] for n in names], np.float32), names
 
 
-def goal_stats(landing, goal, hit, xp=np) -> dict:
-    """Goal-reaching statistics of B attempts as arrays: landing [B, 2] (NaN where nothing
-    landed), goal [B, 2], hit [B] bool.
-
-    within_30cm / within_20cm: fraction of all B attempts that were hit and landed within the
-    radius (a ball not hit is a miss); mean_dist: mean distance over hit balls that landed (NaN
-    if none); hit_rate: fraction hit."""
+def scored_distance(landing, goal, hit, on_opponent, xp=np):
+    """[B] distance (m) from the goal [B, 2] of each strict landing, inf for the others: a landing
+    [B, 2] counts when the ball was hit (hit [B]) and its first bounce after the hit was on the
+    opponent's half (on_opponent [B], the events' `on_opponent`). A ball landing near a goal but
+    off the table, or on the robot's own half, is a miss. `d <= radius` is a success."""
+    ok = xp.asarray(hit, bool) & xp.asarray(on_opponent, bool)
     dist = xp.linalg.norm(landing - goal, axis=-1)
-    ok = hit & xp.isfinite(dist)
-    d = xp.where(ok, dist, xp.inf)
+    return xp.where(ok & xp.isfinite(dist), dist, xp.inf)
+
+
+def goal_stats(landing, goal, hit, on_opponent, xp=np) -> dict:
+    """Goal-reaching statistics of B attempts as arrays: landing [B, 2] (NaN where nothing
+    landed), goal [B, 2], hit [B] bool, on_opponent [B] bool (scored_distance: strict success).
+
+    within_30cm / within_20cm: fraction of all B attempts that succeed; hit_rate: fraction hit;
+    on_table_rate: fraction whose first bounce after the hit was on the opponent's half;
+    mean_dist: mean distance to the goal over those on-table landings (NaN if none)."""
+    d = scored_distance(landing, goal, hit, on_opponent, xp)
+    ok = xp.isfinite(d)
     n_ok = xp.sum(ok)
-    mean_dist = xp.where(n_ok > 0, xp.sum(xp.where(ok, dist, 0.0)) / xp.maximum(n_ok, 1), xp.nan)
+    mean_dist = xp.where(n_ok > 0, xp.sum(xp.where(ok, d, 0.0)) / xp.maximum(n_ok, 1), xp.nan)
     return {"within_30cm": xp.mean(d <= RADII[0]), "within_20cm": xp.mean(d <= RADII[1]),
-            "mean_dist": mean_dist, "hit_rate": xp.mean(hit)}
+            "mean_dist": mean_dist, "hit_rate": xp.mean(hit), "on_table_rate": xp.mean(ok)}
 
 
-def goal_metrics(landing, goal, hit) -> dict:
+def goal_metrics(landing, goal, hit, on_opponent) -> dict:
     """goal_stats of B attempts as Python floats (float64 arithmetic), plus the goal count."""
-    landing, goal, hit = np.asarray(landing, np.float64), np.asarray(goal, np.float64), np.asarray(hit, bool)
+    landing, goal = np.asarray(landing, np.float64), np.asarray(goal, np.float64)
+    hit, on_opponent = np.asarray(hit, bool), np.asarray(on_opponent, bool)
     if landing.shape != goal.shape or landing.ndim != 2 or landing.shape[1] != 2:
         raise ValueError(f"landing {landing.shape} and goal {goal.shape} must both be [B, 2]")
-    if hit.shape != (len(goal),):
-        raise ValueError(f"hit has shape {hit.shape}, expected ({len(goal)},)")
-    return {**{k: float(v) for k, v in goal_stats(landing, goal, hit).items()}, "goals": int(len(goal))}
+    for name, x in (("hit", hit), ("on_opponent", on_opponent)):
+        if x.shape != (len(goal),):
+            raise ValueError(f"{name} has shape {x.shape}, expected ({len(goal)},)")
+    stats = goal_stats(landing, goal, hit, on_opponent)
+    return {**{k: float(v) for k, v in stats.items()}, "goals": int(len(goal))}
 
 
-def per_goal_metrics(landing, goal, hit, names: list[str]) -> dict:
+def per_goal_metrics(landing, goal, hit, on_opponent, names: list[str]) -> dict:
     """goal_metrics for each named goal, in order of first appearance."""
     names = np.asarray(names)
-    return {n: goal_metrics(np.asarray(landing)[names == n], np.asarray(goal)[names == n],
-                            np.asarray(hit)[names == n]) for n in dict.fromkeys(names.tolist())}
+    arrays = [np.asarray(x) for x in (landing, goal, hit, on_opponent)]
+    return {n: goal_metrics(*(x[names == n] for x in arrays)) for n in dict.fromkeys(names.tolist())}

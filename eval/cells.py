@@ -1,0 +1,146 @@
+"""One cell of an experiment table: a training run with one configuration and one seed, reduced
+to a small JSON result (final metrics, the learning curve, the landings of the final evaluation,
+the wall time and the resolved configuration).
+
+The seam for other tables (`ttmjx ablate`, a future `ttmjx baseline METHOD`): a `Trainer` is any
+function (config, progress) -> Outcome. `goalseye` is the one for this project's trainer;
+another method (PPO through brax, say) supplies its own and reuses everything else here:
+skipping finished cells, resuming, atomic results, the report (eval/tables.py).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from typing import Any, Callable, NamedTuple
+
+import jax
+import numpy as np
+
+from eval.evaluate import padded, rollout_goals, training_evaluation
+from training.checkpoint import load_checkpoint
+from training.runlog import MetricsLog
+from training.trainer import Run
+from ttmjx.world import files
+from ttmjx.world.backends import Backend, resolve_backend
+from ttmjx.world.goals import goal_metrics, uniform_goals
+
+# The final evaluation of every cell uses this key: the same goals and throws for every
+# variant and seed, so differences between cells are the policies', not the draws'.
+FINAL_EVAL_SEED = 1234
+
+
+class Outcome(NamedTuple):
+    """What a trainer hands back for one cell."""
+    finished: bool            # False: stopped early (a signal); the cell is redone/resumed later
+    stopped_by_signal: int    # the signal that stopped it (0: none)
+    final: dict               # metrics of the final evaluation (goal_metrics keys)
+    curve: list               # [{trajectories, updates, cache_size, <metric>: ...}] per evaluation
+    landings: dict            # final evaluation per episode: goal [G, 2], landing [G, 2], hit, on_opponent
+
+
+Trainer = Callable[[Any, bool], Outcome]   # (config with seed and run_dir set, progress) -> Outcome
+
+
+@dataclasses.dataclass(frozen=True)
+class Cell:
+    """(variant, seed) of an experiment, its resolved config and where its run lives."""
+    variant: str
+    seed: int
+    config: Any               # a frozen dataclass (RunConfig for GoalsEye)
+    run_dir: str
+
+    @property
+    def name(self) -> str:
+        return f"{self.variant}-seed{self.seed}"
+
+
+def config_json(cfg) -> dict:
+    """A config dataclass as plain JSON values (tuples as lists)."""
+    return json.loads(json.dumps(dataclasses.asdict(cfg)))
+
+
+def result_path(results_dir: str, cell: Cell) -> str:
+    return os.path.join(results_dir, f"{cell.name}.json")
+
+
+def load_result(path: str) -> dict:
+    with open(path) as f:
+        return json.load(f)
+
+
+def check_result_matches(path: str, cell: Cell) -> None:
+    """ValueError if the finished result at `path` was computed with another configuration (a
+    skipped cell must be the cell this command asks for)."""
+    saved, mine = load_result(path).get("config", {}), config_json(cell.config)
+    diff = sorted(k for k in set(saved) | set(mine) if k != "run_dir" and saved.get(k) != mine.get(k))
+    if diff:
+        raise ValueError(f"{path} holds a result computed with a different config (fields {diff}); "
+                         f"delete it or choose another --out")
+
+
+def run_cell(cell: Cell, results_dir: str, trainer: Trainer, progress: bool = True, log=print) -> dict:
+    """The cell's result: read if it is finished, else trained (resuming its run directory) and
+    written atomically. {'stopped_by_signal': N} if a signal stopped the trainer early (nothing
+    written; the same call resumes it)."""
+    path = result_path(results_dir, cell)
+    if os.path.exists(path):
+        log(f"[ablate] {cell.name}: finished earlier ({path}), skipped")
+        return load_result(path)
+    os.makedirs(cell.run_dir, exist_ok=True)
+    t0 = time.perf_counter()
+    out = trainer(cell.config, progress)
+    wall = add_wall_time(cell.run_dir, time.perf_counter() - t0)
+    if not out.finished:
+        return {"stopped_by_signal": out.stopped_by_signal}
+    result = {"variant": cell.variant, "seed": cell.seed, "run_dir": cell.run_dir, "final": out.final,
+              "curve": out.curve, "landings": out.landings, "wall_s": wall["wall_s"], "attempts": wall["attempts"],
+              "config": config_json(cell.config)}
+    os.makedirs(results_dir, exist_ok=True)
+    files.write_json(path, result, indent=None)
+    return result
+
+
+def add_wall_time(run_dir: str, seconds: float) -> dict:
+    """Wall time summed over the calls that worked on a cell (a resumed cell spans several; a
+    call killed outright is not counted)."""
+    path = os.path.join(run_dir, "wall_time.json")
+    prev = load_result(path) if os.path.exists(path) else {"wall_s": 0.0, "attempts": 0}
+    now = {"wall_s": prev["wall_s"] + seconds, "attempts": prev["attempts"] + 1}
+    files.write_json(path, now)
+    return now
+
+
+# -- the GoalsEye trainer ---------------------------------------------------------------------
+def goalseye(cfg, progress: bool = True) -> Outcome:
+    """Train (or resume) cfg.run_dir with training.trainer.Run, then evaluate its final policy."""
+    out = Run(cfg, evaluate=training_evaluation(cfg), progress=progress).run()
+    if not out["finished"]:
+        return Outcome(False, out["stopped_by_signal"], {}, [], {})
+    final, landings = final_evaluation(cfg.run_dir)
+    return Outcome(True, 0, final, curve(cfg.run_dir), landings)
+
+
+def curve(run_dir: str) -> list[dict]:
+    """The run's evaluations from metrics.jsonl, in order: x values and metrics (eval_ dropped)."""
+    return [{"trajectories": r["trajectories"], "updates": r["updates"], "cache_size": r["cache_size"],
+             **{k.removeprefix("eval_"): v for k, v in r.items() if k.startswith("eval_")}}
+            for r in MetricsLog(run_dir).rows() if any(k.startswith("eval_") for k in r)]
+
+
+def final_evaluation(run_dir: str) -> tuple[dict, dict]:
+    """(metrics, landings) of the newest checkpoint's acting policy on cfg.eval_goals uniform goals
+    drawn from FINAL_EVAL_SEED (the whole ensemble playing, as during training)."""
+    loaded = load_checkpoint(run_dir)
+    cfg = loaded.cfg
+    backend = Backend(cfg.world, resolve_backend(cfg.backend))
+    k_goal, k_run = jax.random.split(jax.random.PRNGKey(FINAL_EVAL_SEED))
+    goals = padded(np.asarray(uniform_goals(k_goal, cfg.eval_goals, cfg.world.table), np.float32),
+                   cfg.train.members)
+    tr = rollout_goals(cfg.world, cfg.policy, loaded.params, backend, k_run, goals, cfg.train.members)
+    landing = np.asarray(tr.landing, np.float64)
+    metrics = goal_metrics(landing, goals, np.asarray(tr.hit), np.asarray(tr.on_opponent))
+    landings = {"goal": goals.astype(np.float64).round(4).tolist(), "landing": landing.round(4).tolist(),
+                "hit": np.asarray(tr.hit, bool).tolist(), "on_opponent": np.asarray(tr.on_opponent, bool).tolist()}
+    return metrics, landings

@@ -1,0 +1,73 @@
+"""What `ttmjx eval RUN --out DIR` writes, so anyone can check or recompute the numbers:
+
+* `summary.json`: the metrics object (the one `--json` prints);
+* `episodes.csv`: one row per episode: goal_x, goal_y, hit (0/1), landing_x, landing_y (empty
+  when the ball was not hit or never came down after the hit), on_opponent_half (0/1: its first
+  bounce after the hit was on the opponent's half), distance_m (landing to goal, empty without a
+  landing), success_30cm, success_20cm (0/1, the strict success of ttmjx.world.goals);
+* `tracks.npz` (plain arrays, no pickle): ball_pos [N, T, 3] float32, the ball's centre (table
+  frame, m) at the start of each control step; valid [N, T] bool, the steps played (the episode
+  had not ended before them; the sample after the last valid one is the ball after the last
+  step, and the landing lies between the two); hit_step [N] int32 (-1: no hit); control_hz;
+  table_top_z and ball_radius (m), so the landing can be found as the first crossing of
+  table_top_z + ball_radius after the hit.
+
+Every file is written atomically (ttmjx.world.files); summary.json last, so a directory holding it
+is complete.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import os
+
+import numpy as np
+
+from ttmjx.world import files
+from ttmjx.world.config import World
+from ttmjx.world.goals import RADII, scored_distance
+from ttmjx.world.record import OBS_BALL, Trajectories
+
+EPISODE_COLUMNS = ("goal_x", "goal_y", "hit", "landing_x", "landing_y", "on_opponent_half", "distance_m",
+                   "success_30cm", "success_20cm")
+
+
+def check_out_dir(out: str) -> None:
+    """FileExistsError unless `out` is new or an empty directory."""
+    if os.path.exists(out) and (not os.path.isdir(out) or os.listdir(out)):
+        raise FileExistsError(f"--out {out!r} exists and is not an empty directory; expected a new or empty one")
+
+
+def episode_table(traj: Trajectories) -> str:
+    """episodes.csv of B episodes (header + B rows)."""
+    goal, landing = np.asarray(traj.goal, np.float32), np.asarray(traj.landing, np.float32)
+    hit, on_opp = np.asarray(traj.hit, bool), np.asarray(traj.on_opponent, bool)
+    g64, l64 = goal.astype(np.float64), landing.astype(np.float64)    # goal_metrics' arithmetic
+    scored = scored_distance(l64, g64, hit, on_opp)
+    dist = np.linalg.norm(l64 - g64, axis=-1)
+    num = lambda v: "" if not np.isfinite(v) else str(v)  # noqa: E731 (numpy's shortest exact text)
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(EPISODE_COLUMNS)
+    for i in range(len(goal)):
+        w.writerow([num(goal[i, 0]), num(goal[i, 1]), int(hit[i]), num(landing[i, 0]), num(landing[i, 1]),
+                    int(hit[i] and on_opp[i]), num(dist[i]), int(scored[i] <= RADII[0]), int(scored[i] <= RADII[1])])
+    return buf.getvalue()
+
+
+def tracks(traj: Trajectories, world: World) -> dict:
+    """The arrays of tracks.npz (module docstring) for B episodes of T steps."""
+    return {"ball_pos": np.asarray(traj.obs, np.float32)[:, :, OBS_BALL], "valid": np.asarray(traj.valid, bool),
+            "hit_step": np.asarray(traj.hit_step, np.int32), "control_hz": np.int32(world.control_hz),
+            "table_top_z": np.float64(world.table.top_z), "ball_radius": np.float64(world.ball.radius)}
+
+
+def write_eval_dir(out: str, summary: dict, traj: Trajectories, world: World) -> None:
+    """summary.json, episodes.csv and tracks.npz of one evaluation into `out` (new or empty)."""
+    check_out_dir(out)
+    os.makedirs(out, exist_ok=True)
+    files.write_bytes(os.path.join(out, "episodes.csv"), episode_table(traj).encode())
+    buf = io.BytesIO()
+    np.savez(buf, **tracks(traj, world))
+    files.write_bytes(os.path.join(out, "tracks.npz"), buf.getvalue())
+    files.write_json(os.path.join(out, "summary.json"), summary)

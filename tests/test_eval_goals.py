@@ -1,0 +1,181 @@
+"""Strict success (ttmjx.world.goals), practice goals beyond the table, user goal files and what
+`ttmjx eval RUN --goals FILE --out DIR` writes (eval.goalset, eval.report)."""
+import contextlib
+import csv
+import io
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from eval.goalset import load_goal_file
+from ttmjx import cli
+from ttmjx.world.config import Table, World
+from ttmjx.world.goals import goal_metrics, goal_stats, uniform_goals
+
+DATA = os.path.join(os.path.dirname(__file__), "data")
+RUN = os.path.join(DATA, "tiny_run_v0")
+TABLE = Table()
+NAN = np.nan
+
+
+def strict_case():
+    """Six attempts, each a different way to land near the goal (which a lenient metric counts)."""
+    goal = np.array([[0.7, 0.0], [0.7, 0.0], [1.30, 0.0], [0.10, 0.0], [0.7, 0.0], [0.7, 0.0]])
+    landing = np.array([[0.7, 0.0],      # hit, first bounce on the opponent's half, on the goal
+                        [NAN, NAN],      # not hit
+                        [1.45, 0.0],     # hit, lands 15 cm from the goal but beyond the end line
+                        [-0.10, 0.0],    # hit, lands 20 cm from the goal but on the robot's half
+                        [NAN, NAN],      # hit, never came down
+                        [0.7, 0.25]])    # hit, on the half, 25 cm away
+    hit = np.array([1, 0, 1, 1, 1, 1], bool)
+    on_opponent = np.array([1, 0, 0, 0, 0, 1], bool)
+    return landing, goal, hit, on_opponent
+
+
+def test_a_success_is_a_first_bounce_on_the_opponents_half_near_the_goal():
+    m = goal_metrics(*strict_case())
+    assert m["within_30cm"] == pytest.approx(2 / 6) and m["within_20cm"] == pytest.approx(1 / 6)
+    assert m["hit_rate"] == pytest.approx(5 / 6) and m["on_table_rate"] == pytest.approx(2 / 6)
+    assert m["mean_dist"] == pytest.approx(0.125)      # over the two on-table landings only
+    assert m["goals"] == 6
+    jm = goal_stats(*(jnp.asarray(x) for x in strict_case()), xp=jnp)   # the jitted practice path
+    assert {k: float(v) for k, v in jm.items()} == pytest.approx({k: v for k, v in m.items() if k != "goals"})
+
+
+def test_no_on_table_landing_gives_zero_success_and_no_mean_distance():
+    landing, goal, hit, _ = strict_case()
+    m = goal_metrics(landing, goal, hit, np.zeros(6, bool))
+    assert m["within_30cm"] == 0 and m["on_table_rate"] == 0 and np.isnan(m["mean_dist"])
+    with pytest.raises(ValueError, match=r"on_opponent has shape \(5,\), expected \(6,\)"):
+        goal_metrics(landing, goal, hit, np.zeros(5, bool))
+
+
+def test_practice_goals_reach_beyond_the_edges_and_evaluation_goals_stay_on_the_table():
+    key = jax.random.PRNGKey(0)
+    on = np.asarray(uniform_goals(key, 4000, TABLE))
+    np.testing.assert_array_equal(on, np.asarray(uniform_goals(key, 4000, TABLE, 0.0)))
+    assert on[:, 0].min() >= 0 and on[:, 0].max() <= TABLE.half_length and np.abs(on[:, 1]).max() <= TABLE.half_width
+    g = np.asarray(uniform_goals(key, 4000, TABLE, 0.2))
+    assert g[:, 0].min() >= 0, "never over the net"
+    assert g[:, 0].max() <= TABLE.half_length + 0.2 and np.abs(g[:, 1]).max() <= TABLE.half_width + 0.2
+    off = (g[:, 0] > TABLE.half_length) | (np.abs(g[:, 1]) > TABLE.half_width)
+    # Uniform over the extended area: the fraction off the table is 1 - table area / extended area.
+    expect = 1 - TABLE.half_length * TABLE.half_width / ((TABLE.half_length + 0.2) * (TABLE.half_width + 0.2))
+    assert off.mean() == pytest.approx(expect, abs=0.03)
+
+
+def write_goals(tmp_path, goals) -> tuple[str, str]:
+    csv_path, npy_path = str(tmp_path / "g.csv"), str(tmp_path / "g.npy")
+    with open(csv_path, "w") as f:
+        f.write("x,y\n" + "".join(f"{x!r},{y!r}\n" for x, y in goals.tolist()))
+    np.save(npy_path, goals)
+    return csv_path, npy_path
+
+
+def test_goal_files_csv_and_npy_read_the_same_goals(tmp_path):
+    goals = np.array([[0.7, 0.0], [0.35, 0.45], [1.05, -0.45]], np.float32)
+    csv_path, npy_path = write_goals(tmp_path, goals)
+    np.testing.assert_array_equal(load_goal_file(csv_path, TABLE), goals)
+    np.testing.assert_array_equal(load_goal_file(npy_path, TABLE), goals)
+    (tmp_path / "swapped.csv").write_text("y, x ,note\n0.45,0.35,a\n")
+    np.testing.assert_array_equal(load_goal_file(str(tmp_path / "swapped.csv"), TABLE), np.float32([[0.35, 0.45]]))
+    for name, text, match in [("noheader.csv", "0.7,0.0\n", "header row naming columns x and y"),
+                              ("nan.csv", "x,y\n0.7,nan\n", r"goal 0 = \(0.7, nan\) is not finite"),
+                              ("beyond.csv", "x,y\n0.7,0\n1.5,0\n", r"goal 1 = \(1.5, 0.0\) is off the opponent's half"),
+                              ("own.csv", "x,y\n-0.2,0\n", "off the opponent's half"),
+                              ("text.csv", "x,y\n0.7,abc\n", "row 2"), ("empty.csv", "x,y\n", r"shape \(0, 2\)")]:
+        (tmp_path / name).write_text(text)
+        with pytest.raises(ValueError, match=match):
+            load_goal_file(str(tmp_path / name), TABLE)
+    np.save(tmp_path / "wide.npy", np.zeros((3, 3)))
+    with pytest.raises(ValueError, match=r"shape \(3, 3\); expected \[N, 2\]"):
+        load_goal_file(str(tmp_path / "wide.npy"), TABLE)
+    np.save(tmp_path / "obj.npy", np.array([[0.7, None]], object), allow_pickle=True)
+    with pytest.raises(ValueError, match="not a plain numeric"):
+        load_goal_file(str(tmp_path / "obj.npy"), TABLE)
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        load_goal_file(str(tmp_path / "missing.npy"), TABLE)
+
+
+def cli_json(*argv) -> dict:
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        cli.main(list(argv))
+    return json.loads(out.getvalue().strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def eval_dir(tmp_path_factory):
+    """`ttmjx eval tiny_run_v0 --goals g.csv --seed 3 --out DIR --json` on 24 uniform goals."""
+    tmp = tmp_path_factory.mktemp("eval")
+    u = np.random.default_rng(0).uniform(size=(24, 2))
+    goals = np.stack([u[:, 0] * TABLE.half_length, (2 * u[:, 1] - 1) * TABLE.half_width], 1).round(3)
+    csv_path, _ = write_goals(tmp, goals.astype(np.float32))
+    out = str(tmp / "out")
+    printed = cli_json("eval", RUN, "--goals", csv_path, "--seed", "3", "--out", out, "--json")
+    return out, printed, goals.astype(np.float32)
+
+
+def test_eval_out_writes_the_summary_it_prints_and_one_row_per_episode(eval_dir):
+    out, printed, goals = eval_dir
+    assert sorted(os.listdir(out)) == ["episodes.csv", "summary.json", "tracks.npz"]
+    assert json.load(open(os.path.join(out, "summary.json"))) == printed
+    assert printed["goals"] == len(goals) == 24
+    rows = list(csv.DictReader(open(os.path.join(out, "episodes.csv"))))
+    assert list(rows[0]) == ["goal_x", "goal_y", "hit", "landing_x", "landing_y", "on_opponent_half",
+                             "distance_m", "success_30cm", "success_20cm"]
+    np.testing.assert_array_equal(np.float32([[r["goal_x"], r["goal_y"]] for r in rows]), goals)  # exact text
+    col = lambda k: np.array([int(r[k]) for r in rows])  # noqa: E731
+    for key, name in [("hit_rate", "hit"), ("on_table_rate", "on_opponent_half"),
+                      ("within_30cm", "success_30cm"), ("within_20cm", "success_20cm")]:
+        assert printed[key] == pytest.approx(col(name).mean()), key
+    assert 0 < printed["on_table_rate"] < printed["hit_rate"], "the policy should put some hits on the table, not all"
+    for r in rows:
+        landed = r["landing_x"] != ""
+        assert landed <= (r["hit"] == "1") and (r["distance_m"] != "") == landed
+        if r["on_opponent_half"] == "1":      # a first bounce on the opponent's half: on its footprint
+            x, y = float(r["landing_x"]), float(r["landing_y"])
+            assert -0.02 <= x <= TABLE.half_length + 0.02 and abs(y) <= TABLE.half_width + 0.02, (x, y)
+        else:
+            assert r["success_30cm"] == "0"
+        if landed:
+            d = np.hypot(float(r["landing_x"]) - float(r["goal_x"]), float(r["landing_y"]) - float(r["goal_y"]))
+            assert float(r["distance_m"]) == pytest.approx(d, abs=1e-6)
+            assert r["success_30cm"] == str(int(r["on_opponent_half"] == "1" and d <= 0.30))
+    on_table = np.array([float(r["distance_m"]) for r in rows if r["on_opponent_half"] == "1"])
+    assert printed["mean_dist"] == pytest.approx(on_table.mean())
+
+
+def test_tracks_recompute_the_recorded_landings(eval_dir):
+    """From tracks.npz alone: the ball's last sample before the episode ended, carried forward
+    ballistically (gravity; drag moves it < 1 mm in one 10 ms step) to table height + radius,
+    lands where the episode's landing was recorded, within the travel of two 1 ms physics steps
+    (the events resolve a contact to one physics step) plus 2 mm of the ball's sink into the table."""
+    out, _, _ = eval_dir
+    with np.load(os.path.join(out, "tracks.npz"), allow_pickle=False) as f:
+        t = {k: f[k] for k in f.files}
+    rows = list(csv.DictReader(open(os.path.join(out, "episodes.csv"))))
+    n, steps = len(rows), World().horizon
+    assert t["ball_pos"].shape == (n, steps, 3) and t["valid"].shape == (n, steps) and t["hit_step"].shape == (n,)
+    dt, g = 1.0 / int(t["control_hz"]), 9.81
+    height = float(t["table_top_z"] + t["ball_radius"])
+    checked = 0
+    for i, r in enumerate(rows):
+        assert (t["hit_step"][i] >= 0) == (r["hit"] == "1")
+        if r["landing_x"] == "":
+            continue
+        last = int(np.flatnonzero(t["valid"][i])[-1])
+        assert last > t["hit_step"][i], "the landing comes after the hit"
+        p0, p1 = t["ball_pos"][i, last - 1].astype(np.float64), t["ball_pos"][i, last].astype(np.float64)
+        v = (p1 - p0) / dt - np.array([0, 0, -g * dt / 2])        # velocity at the last sample
+        tau = (v[2] + np.sqrt(v[2] ** 2 + 2 * g * (p1[2] - height))) / g   # time to fall to table height
+        landing = np.array([float(r["landing_x"]), float(r["landing_y"])])
+        assert tau <= 1.05 * dt, (i, tau / dt)                    # it lands within the next control step
+        speed = np.linalg.norm(v[:2])
+        assert np.linalg.norm(p1[:2] + v[:2] * tau - landing) <= 2 * World().physics_dt * speed + 0.002, i
+        checked += 1
+    assert checked >= 4, checked
