@@ -36,6 +36,7 @@ from deploy.interp import Interpolated, SampleBuffer
 from deploy.modes import Mode, StateMachine
 from deploy.safety import FAULTS, LATCHING, fault_names, limits_from_contract, safe_target
 from ttmjx.world import observation
+from ttmjx.world.config import Timing
 
 
 class NumpyPolicy(Protocol):
@@ -66,7 +67,9 @@ class RunnerConfig:
     trigger_speed: float = 1.0      # m/s toward the robot (-x) that starts an episode
     ball_box: tuple = ((-4.0, 4.0), (-3.0, 3.0), (0.0, 4.0))   # plausible ball x, y, z (m)
     max_ball_speed: float = 40.0    # m/s between two ball samples
-    max_extrapolate_s: float = 0.02 # follow the last two samples this far past the newest
+    # Follow the last two samples this far past the newest: the world's timing model does the same
+    # (ttmjx.world.config.Timing.extrapolate_s), so training sees what the runner feeds the policy.
+    max_extrapolate_s: float = Timing().extrapolate_s
 
     def __post_init__(self):
         for name in ("stale_s", "future_s", "jump_factor", "home_timeout_s", "arm_timeout_s",
@@ -489,7 +492,10 @@ class Runner:
             self._state = self.policy.reset()
         except Exception:
             reset_fault = FAULTS["policy_error"]
-        end, n = "done", min(T, max(0, int(np.floor((self.clock.now() - t0) / dt))))
+        # Every tick whose deadline has passed when the episode begins is logged, not executed:
+        # executing one late would start its command off the tick grid (the world's timing model
+        # acts from the first tick after the trigger, ttmjx.world.timing).
+        end, n = "done", min(T, max(0, int(np.ceil((self.clock.now() - t0) / dt - 1e-9))))
         for m in range(n):                                     # before the episode began
             self._record_past(log, stack, m, t0 + m * dt, goal)
         while n < T:

@@ -55,7 +55,7 @@ from deploy.goals import check_goals
 from deploy.runner import Runner, RunnerConfig
 from deploy.safety import count_violations
 from ttmjx.world import env, files, record, scene
-from ttmjx.world.config import World
+from ttmjx.world.config import TIMING_PROFILES, Timing, World
 from ttmjx.world.goals import goal_metrics
 
 # Ball parked out of sight between throws (no contacts, the tracker reports nothing).
@@ -191,10 +191,10 @@ class SimRobot:
     def read(self) -> tuple[float, np.ndarray]:
         s = self.s
         now = s.sync()
-        for t, q in reversed(s.joint_samples):
-            if t <= now - s.joint_latency_s + 1e-12:
+        for t, q, due in reversed(s.joint_samples):
+            if due <= now + 1e-12:
                 return t, q.copy()
-        t, q = s.joint_samples[0]
+        t, q, _ = s.joint_samples[0]
         return t, q.copy()
 
     def send(self, q) -> None:
@@ -224,8 +224,8 @@ class SimTracker:
         s = self.s
         now = s.sync()
         ts, xs = [], []
-        for t, x in s.ball_samples:
-            if self._last < t <= now - s.tracker_latency_s + 1e-12:
+        for t, x, due in s.ball_samples:
+            if self._last < t and due <= now + 1e-12:
                 ts.append(t)
                 xs.append(x)
         if ts:
@@ -233,14 +233,11 @@ class SimTracker:
         return np.asarray(ts, np.float64), np.asarray(xs, np.float64).reshape(-1, 3)
 
 
-# Sensor timing profiles (SimStation keyword arguments). nominal: the lab's sensors. zero: ideal
-# sensors, every physics step sampled and delivered at once, so the runner sees the state the
-# simulation's policy sees (with SimClock(charge_compute=False) and the runner's episodes started
-# at the launch: scripts/runner_vs_eval.py).
-TIMING = {
-    "nominal": {"joint_hz": 250.0, "joint_latency_s": 0.002, "tracker_hz": 125.0, "tracker_latency_s": 0.004},
-    "zero": {"joint_hz": None, "joint_latency_s": 0.0, "tracker_hz": None, "tracker_latency_s": 0.0},
-}
+# Sensor and actuation timing profiles by name (ttmjx.world.config.TIMING_PROFILES, the one timing
+# model of the training world and this station). zero: ideal sensors, every physics step sampled
+# and delivered at once, so the runner sees the state the simulation's policy sees (with
+# SimClock(charge_compute=False) and episodes started at the launch: scripts/runner_vs_eval.py).
+TIMING = TIMING_PROFILES
 
 
 class SimStation:
@@ -248,19 +245,23 @@ class SimStation:
     None: a sample every physics step."""
 
     def __init__(self, cfg: World = World(), contract: Contract | None = None, clock=None,
-                 seed: int = 0, joint_hz: float | None = 250.0, joint_latency_s: float = 0.002,
-                 tracker_hz: float | None = 125.0, tracker_latency_s: float = 0.004,
+                 seed: int = 0, timing: Timing = TIMING_PROFILES["nominal"],
                  tracker_noise_m: float = 0.0, ramp_s: float | None = None, q0=None,
                  throws_per_batch: int = 16, room_x: float = 3.5, room_y: float = 2.5):
-        self.cfg = cfg
+        if not isinstance(timing, Timing):
+            raise TypeError(f"SimStation: timing must be a ttmjx.world.config.Timing (profiles: "
+                            f"{sorted(TIMING_PROFILES)}), got {timing!r}")
+        self.cfg, self.timing = cfg, timing
         self.clock = clock if clock is not None else SimClock()
         self.m = scene.model(cfg, fluid=True)
         self.d = mujoco.MjData(self.m)
         self.ids = scene.ids(self.m)
         self.dt = float(self.m.opt.timestep)
-        self.joint_every = self._steps_per(joint_hz, "joint_hz")
-        self.ball_every = self._steps_per(tracker_hz, "tracker_hz")
-        self.joint_latency_s, self.tracker_latency_s = joint_latency_s, tracker_latency_s
+        self.joint_every = self._steps_per(timing.joint_hz, "joint_hz")
+        self.ball_every = self._steps_per(timing.tracker_hz, "tracker_hz")
+        self.joint_latency_s, self.tracker_latency_s = timing.joint_latency_s, timing.tracker_latency_s
+        self.action_delay_s = timing.action_delay_s
+        self.joint_offset = 0      # joint samples at physics steps n = joint_offset (mod joint_every)
         self.noise_m, self.rng = tracker_noise_m, np.random.default_rng(seed)
         self.ramp_s = float(ramp_s if ramp_s is not None else (contract.dt if contract else cfg.control_dt))
         self.room = (room_x, room_y)
@@ -273,7 +274,8 @@ class SimStation:
         q0 = self._place_robot(q0)
         self.t_origin = float(self.clock.now())
         self.n = 0                                        # physics steps taken
-        self.joint_samples = collections.deque([(self.t_origin, q0.copy())], maxlen=256)
+        # Samples as (time, value, delivery time); dropped samples are never stored.
+        self.joint_samples = collections.deque([(self.t_origin, q0.copy(), self.t_origin)], maxlen=256)
         self.ball_samples = collections.deque(maxlen=512)
         self.in_flight = False
         self.pending: tuple | None = None                  # (t_launch, (pos, vel, spin, aim))
@@ -292,7 +294,9 @@ class SimStation:
         q0 = np.asarray(q0, np.float64)
         self.d.qpos[self.ids.robot_qpos] = q0
         self.d.ctrl[:] = q0
-        self._ramp = (q0.copy(), q0.copy(), -math.inf)   # (from, to, start time)
+        # Commands as ramps (start time, from, to), oldest first; a command starts its ramp
+        # action_delay_s after it was sent.
+        self._ramps = collections.deque([(-math.inf, q0.copy(), q0.copy())], maxlen=64)
         self._park()
         mujoco.mj_forward(self.m, self.d)
         return q0
@@ -320,12 +324,25 @@ class SimStation:
         return np.concatenate([self.d.qpos[bq:bq + 3], self.d.qvel[bv:bv + 3]])
 
     def set_target(self, q: np.ndarray, now: float) -> None:
-        self._ramp = (self._ctrl_at(now), np.clip(q, self.cfg.robot.lower, self.cfg.robot.upper), now)
+        """A command sent at `now`: its ramp starts action_delay_s later, from where the commands
+        before it have the target then."""
+        start = now + self.action_delay_s
+        self._ramps.append((start, self._ctrl_at(start), np.clip(q, self.cfg.robot.lower, self.cfg.robot.upper)))
 
     def _ctrl_at(self, t: float) -> np.ndarray:
-        q_from, q_to, t0 = self._ramp
+        """[8] the target at time t: the newest ramp started by then."""
+        for t0, q_from, q_to in reversed(self._ramps):
+            if t0 <= t + 1e-12:
+                break
         w = 1.0 if self.ramp_s <= 0 else float(np.clip((t - t0) / self.ramp_s, 0.0, 1.0))
         return q_from + w * (q_to - q_from)
+
+    def _delivery(self, t: float, latency: float) -> float | None:
+        """When a sample taken at t is delivered (latency + jitter), None if it is dropped."""
+        tm = self.timing
+        if tm.drop_prob and self.rng.random() < tm.drop_prob:
+            return None
+        return t + latency + (self.rng.uniform(0.0, tm.jitter_s) if tm.jitter_s else 0.0)
 
     # ---------------------------------------------------------------------- throws
     def prefetch(self) -> None:
@@ -450,8 +467,10 @@ class SimStation:
 
     def _sample(self, t: float) -> None:
         """The joint feedback and the ball tracker, each at its rate."""
-        if self.n % self.joint_every == 0:
-            self.joint_samples.append((t, self.joints()))
+        if (self.n - self.joint_offset) % self.joint_every == 0:
+            due = self._delivery(t, self.joint_latency_s)
+            if due is not None:
+                self.joint_samples.append((t, self.joints(), due))
         if self.in_flight:
             self._sample_ball(t)
 
@@ -462,7 +481,9 @@ class SimStation:
         x = self.ball()[:3]
         if self.noise_m > 0:
             x = x + self.rng.normal(0.0, self.noise_m, 3)
-        self.ball_samples.append((t, x))
+        due = self._delivery(t, self.tracker_latency_s)
+        if due is not None:
+            self.ball_samples.append((t, x, due))
 
     def _track_step(self, prev: np.ndarray) -> None:
         """Keep the step just taken (ball [6] before it, ball [6] and blade centre [3] after) for
@@ -594,7 +615,7 @@ def summarize(runner: Runner, station: SimStation, episodes: list[Episode], goal
     (command_safety), faults and timing.
 
     `violations` are all zero on a fake-time clock. With the runner's computation time charged
-    (SimClock(charge_compute=True), the CLI default) the runner's decision-to-send time (~0.1 ms
+    (SimClock(charge_compute=True), `--charge-compute`) the runner's decision-to-send time (~0.1 ms
     of Python) can make two commands arrive slightly closer than the runner reckoned, which the
     strict rate check counts (< 1% over the margin); `violations_true_limits` must be zero and
     `max_speed_fraction` <= 1."""
@@ -613,7 +634,7 @@ def summarize(runner: Runner, station: SimStation, episodes: list[Episode], goal
 
 
 def run_sim(policy_dir: str, goals, out_dir: str | None = None, seed: int = 0,
-            distribution: str | None = None, realtime: bool = False, charge_compute: bool = True,
+            distribution: str | None = None, realtime: bool = False, charge_compute: bool = False,
             throw_delay_s: float = 0.3, config: RunnerConfig = RunnerConfig(),
             timing: str = "nominal", sync_launch: bool = False) -> dict:
     """Load an export (every check of deploy.export.load_export), build the simulated station
@@ -628,7 +649,7 @@ def run_sim(policy_dir: str, goals, out_dir: str | None = None, seed: int = 0,
         cfg = cfg.with_throws(distribution)
     goals = check_goals(goals)
     clock = MonotonicClock() if realtime else SimClock(charge_compute=charge_compute)
-    station = SimStation(cfg, contract, clock=clock, seed=seed, **TIMING[timing])
+    station = SimStation(cfg, contract, clock=clock, seed=seed, timing=TIMING[timing] if isinstance(timing, str) else timing)
     runner = Runner(station.robot, station.tracker, clock, policy, contract, config)
     if out_dir is not None:
         os.makedirs(out_dir, exist_ok=True)

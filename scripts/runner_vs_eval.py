@@ -19,6 +19,7 @@ with --charge-compute (as `ttmjx robot run` does).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -40,11 +41,14 @@ from ttmjx.world.goals import goal_metrics, uniform_goals
 FRAME_TOL = ACTION_TOL = 1e-4
 
 
-def evaluation(run: str, member_index: int, n: int, seed: int):
+def evaluation(run: str, member_index: int, n: int, seed: int, timing=None):
     """(cfg, params of the member, goals [n, 2], throws, Trajectories) of `ttmjx eval run
-    --goals n --member member_index --seed seed` (eval.evaluate.evaluate_uniform's draws)."""
+    --goals n --member member_index --seed seed` (eval.evaluate.evaluate_uniform's draws);
+    timing: a ttmjx.world.config.Timing to evaluate under instead of the run's."""
     loaded = load_checkpoint(run)
     cfg, params = loaded.cfg, member(loaded.params, member_index)
+    if timing is not None:
+        cfg = dataclasses.replace(cfg, world=dataclasses.replace(cfg.world, timing=timing))
     k_goal, k_run = jax.random.split(jax.random.PRNGKey(seed))
     goals = np.asarray(uniform_goals(k_goal, n, cfg.world.table), np.float32)
     tr = rollout_goals(cfg.world, cfg.policy, params, Backend(cfg.world, "c"), k_run, goals)
@@ -65,7 +69,8 @@ def runner_play(export_dir: str, goals, throws, poses, timing: str = "zero", syn
     toward goals [N, 2] with the station's throws and start poses [N, 8]."""
     policy, contract = load_export(export_dir)
     clock = SimClock(charge_compute=charge_compute)
-    station = SimStation(export_world(policy.contract_doc), contract, clock=clock, **TIMING[timing])
+    station = SimStation(export_world(policy.contract_doc), contract, clock=clock,
+                         timing=TIMING[timing] if isinstance(timing, str) else timing)
     runner = Runner(station.robot, station.tracker, clock, policy, contract)
     station.prefetch()
     episodes = play(runner, station, goals, throws=throws, poses=poses, sync_launch=sync_launch,
@@ -144,7 +149,9 @@ def main(argv=None) -> dict:
     p.add_argument("--n", type=int, default=100, help="uniform goals (episodes)")
     p.add_argument("--seed", type=int, default=1234, help="ttmjx eval's --seed")
     p.add_argument("--export", default=None, help="an export of that member (default: exported to a temp dir)")
-    p.add_argument("--timing", choices=sorted(TIMING), default="zero")
+    p.add_argument("--timing", choices=sorted(TIMING), default="zero", help="the station's timing profile")
+    p.add_argument("--eval-timing", choices=sorted(TIMING), default=None,
+                   help="evaluate under this timing profile (default: the run's own world timing)")
     p.add_argument("--start", choices=("launch", "trigger"), default="launch")
     p.add_argument("--pose", choices=("eval", "home"), default="eval",
                    help="start pose: the evaluation's (home + its reset noise) or the contract's home")
@@ -153,7 +160,8 @@ def main(argv=None) -> dict:
     p.add_argument("--steps", type=int, default=20, help="steps compared per episode")
     p.add_argument("--json", action="store_true")
     a = p.parse_args(argv)
-    cfg, params, goals, throws, tr = evaluation(a.run, a.member, a.n, a.seed)
+    cfg, params, goals, throws, tr = evaluation(a.run, a.member, a.n, a.seed,
+                                                None if a.eval_timing is None else TIMING[a.eval_timing])
     export_dir = a.export or export(params, cfg.policy, cfg.world,
                                     os.path.join(tempfile.mkdtemp(), "policy"), source=f"{a.run}@member{a.member}")
     poses = np.asarray(tr.obs[:, 0, :8], np.float64) if a.pose == "eval" else None   # eval's start poses
@@ -162,7 +170,7 @@ def main(argv=None) -> dict:
     tr = jax.tree.map(lambda x: np.asarray(x)[:len(episodes)], tr)
     rows = episode_rows(tr, episodes, a.steps)
     out = {**summary(tr, episodes, rows, a.n), "run": a.run, "member": a.member, "seed": a.seed,
-           "timing": a.timing, "start": a.start, "pose": a.pose, "charge_compute": a.charge_compute}
+           "timing": a.timing, "eval_timing": a.eval_timing or "run's own", "start": a.start, "pose": a.pose, "charge_compute": a.charge_compute}
     print_report(rows, out)
     if a.json:
         print(json.dumps(files.json_safe(out)))

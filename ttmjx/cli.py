@@ -297,10 +297,34 @@ class RobotRunArgs(Report):
     """Joint or ball data older than this (ms) -> hold."""
     realtime: Flag = False
     """Pace on the real clock."""
-    no_compute_time: Flag = False
-    """sim: do not charge the runner's computation time to the simulated clock."""
+    charge_compute: Flag = False
+    """sim: charge the runner's own computation time to the simulated clock (then two runs with
+    the same seed can differ by the machine's speed); off: runs are reproducible by seed."""
     timing: Literal["nominal", "zero"] = "nominal"
-    """sim: sensor timing of the station: nominal (tracker 125 Hz, 4 ms; joints 2 ms) or zero (ideal)."""
+    """sim: sensor and actuation timing of the station (ttmjx.world.config.TIMING_PROFILES):
+    nominal (tracker 125 Hz, 10 ms; joints 250 Hz, 4 ms; commands 8 ms) or zero (ideal)."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class RobotSweepArgs(Report):
+    """Strict success of an exported policy on the simulated station against added latency of the
+    ball tracker and of the commands: a table, sweep.json and sweep.png."""
+    BOUNDS: ClassVar[dict] = {"n": (1, 100_000), "max_ms": (0.0, 1000.0), "points": (2, 50)}
+    NEW_DIRS: ClassVar[tuple] = ("out",)
+    policy: str
+    """An export directory (ttmjx export --out)."""
+    out: str
+    """Directory for sweep.json and sweep.png (new or empty)."""
+    n: int = 100
+    """Uniform goals per point (the same goals and throws at every point)."""
+    max_ms: float = 150.0
+    """Largest added latency (ms)."""
+    points: int = 6
+    """Latencies from 0 to max_ms, evenly spaced."""
+    seed: int = 0
+    """Seed of the goals and throws."""
+    timing: Literal["nominal", "zero"] = "nominal"
+    """The station's timing the latency is added to."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -482,7 +506,7 @@ def robot_run(a: RobotRunArgs) -> None:
     if a.station == "sim":
         from deploy.station import run_sim
         out = run_sim(a.policy, goals, a.out, seed=a.seed, distribution=a.distribution,
-                      realtime=a.realtime, charge_compute=not a.no_compute_time, config=config, timing=a.timing)
+                      realtime=a.realtime, charge_compute=a.charge_compute, config=config, timing=a.timing)
     else:
         out = run_fake(goals, a.out, a.policy, None, None, config, a.realtime)
     m = out.get("metrics", {})
@@ -492,6 +516,15 @@ def robot_run(a: RobotRunArgs) -> None:
            f"faults {out['faults']}; logs in {out['out']}")
     if out["episodes"] != out["goals"]:
         sys.exit(1)
+
+
+def robot_sweep(a: RobotSweepArgs) -> None:
+    from deploy.goals import session_goals
+    import numpy as np
+    from deploy.sweep import latency_sweep, sweep_table
+    goals = session_goals("uniform", a.n, a.seed)
+    out = latency_sweep(a.policy, goals, a.out, np.linspace(0.0, a.max_ms, a.points), a.seed, a.timing)
+    report(a, out, sweep_table(out) + f"\nwrote {a.out}/sweep.json and sweep.png")
 
 
 def robot_bench(a: RobotBenchArgs) -> None:
@@ -528,6 +561,7 @@ COMMANDS: dict[str, Command] = {
     "ablate": Command(AblateArgs, ablate, "a paper ablation: cells of (variant, seed) runs -> table, curves, landing maps"),
     "export": Command(ExportArgs, export, "safetensors weights + contract + golden self-test + ONNX graph for the robot runner"),
     "robot run": Command(RobotRunArgs, robot_run, "the robot runner: play an exported policy on a station"),
+    "robot sweep": Command(RobotSweepArgs, robot_sweep, "strict success against added ball and command latency"),
     "robot bench": Command(RobotBenchArgs, robot_bench, "numpy or ONNX policy step latency on one CPU core"),
 }
 

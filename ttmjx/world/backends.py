@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from ttmjx.world import ballphysics, env, observation, scene
+from ttmjx.world import ballphysics, env, observation, scene, timing
 from ttmjx.world.config import World
 from ttmjx.world.record import Trajectories
 
@@ -63,11 +63,16 @@ class MjxPhysics:
         self._data0 = mjx.make_data(self.mx)
 
     def step(self, qpos, qvel, ctrl0, ctrl1):
-        """One control step. qpos [nq], qvel [nv], ctrl0/ctrl1 [8] ->
-        (qpos, qvel, ball [S, 6] world pos+vel after each physics step, paddle [S, 3])."""
+        """One control step ramping the targets from ctrl0 to ctrl1 [8]; see step_ctrl."""
+        return self.step_ctrl(qpos, qvel, _ramp(ctrl0, ctrl1, self.cfg.substeps))
+
+    def step_ctrl(self, qpos, qvel, ctrl):
+        """One control step. qpos [nq], qvel [nv], ctrl [S, 8] targets per physics step ->
+        (qpos, qvel, ball [S, 6] world pos+vel after each physics step, paddle [S, 3], joints [S, 8])."""
         from mujoco import mjx
         cfg, lay = self.cfg, self.lay
         bq, bv = lay.ball_qpos, lay.ball_qvel
+        rq = jnp.array(lay.robot_qpos)
 
         def substep(d, ctrl):
             vel = d.qvel[bv:bv + 3]
@@ -76,11 +81,11 @@ class MjxPhysics:
             xfrc = jnp.zeros_like(d.xfrc_applied).at[self.ball_body].set(jnp.concatenate([force, torque]))
             d = mjx.step(self.mx, d.replace(ctrl=ctrl, xfrc_applied=xfrc))
             ball = jnp.concatenate([d.qpos[bq:bq + 3], d.qvel[bv:bv + 3]])
-            return d, (ball, d.sensordata[:3])
+            return d, (ball, d.sensordata[:3], d.qpos[rq])
 
         d = self._data0.replace(qpos=qpos, qvel=qvel)
-        d, (ball, paddle) = jax.lax.scan(substep, d, _ramp(ctrl0, ctrl1, cfg.substeps))
-        return d.qpos, d.qvel, ball, paddle
+        d, (ball, paddle, joints) = jax.lax.scan(substep, d, ctrl)
+        return d.qpos, d.qvel, ball, paddle, joints
 
 
 class CPhysics:
@@ -107,11 +112,16 @@ class CPhysics:
         return st
 
     def step(self, qpos, qvel, ctrl0, ctrl1):
-        """One control step for B throws. qpos [B, nq], qvel [B, nv], ctrl0/ctrl1 [B, 8] ->
-        (qpos [B, nq], qvel [B, nv], ball [B, S, 6], paddle [B, S, 3]) as numpy float64."""
+        """One control step for B throws ramping the targets from ctrl0 to ctrl1 [B, 8]; see step_ctrl."""
+        return self.step_ctrl(qpos, qvel, np.asarray(_ramp(np.asarray(ctrl0, np.float64), np.asarray(ctrl1, np.float64),
+                                                           self.cfg.substeps), np.float64))
+
+    def step_ctrl(self, qpos, qvel, ctrl):
+        """One control step for B throws. qpos [B, nq], qvel [B, nv], ctrl [B, S, 8] targets per
+        physics step -> (qpos [B, nq], qvel [B, nv], ball [B, S, 6], paddle [B, S, 3], joints
+        [B, S, 8]) as numpy float64."""
         qpos, qvel = np.asarray(qpos, np.float64), np.asarray(qvel, np.float64)
-        ctrl = np.asarray(_ramp(np.asarray(ctrl0, np.float64), np.asarray(ctrl1, np.float64),
-                                self.cfg.substeps), np.float64)
+        ctrl = np.asarray(ctrl, np.float64)
         state, sensordata = self.pool.rollout(self.m, self.datas, self.initial_state(qpos, qvel), ctrl,
                                               nstep=self.cfg.substeps)
         nq, nv = self.nq, self.nv
@@ -120,7 +130,7 @@ class CPhysics:
         v = state[:, :, 1 + nq:1 + nq + nv]
         ball = np.concatenate([q[:, :, lay.ball_qpos:lay.ball_qpos + 3],
                                v[:, :, lay.ball_qvel:lay.ball_qvel + 3]], axis=-1)
-        return q[:, -1], v[:, -1], ball, sensordata[:, :, :3]
+        return q[:, -1], v[:, -1], ball, sensordata[:, :, :3], q[:, :, list(lay.robot_qpos)]
 
     def close(self):
         self.pool.close()
@@ -151,6 +161,7 @@ class Backend:
         self._reset = jax.jit(jax.vmap(functools.partial(env.reset, cfg_, lay)))
         self._observe = jax.vmap(functools.partial(env.observe, cfg_, lay))
         self._command = jax.vmap(functools.partial(env.command, cfg_))
+        self._controls = jax.jit(jax.vmap(functools.partial(env.controls, cfg_)))
         self._advance = jax.jit(jax.vmap(functools.partial(env.advance, cfg_, lay)))
         self._rollouts = {}
 
@@ -169,12 +180,22 @@ class Backend:
         """One control step for B throws with actions [B, 8] (validated)."""
         actions = env.check_actions(actions, states.t.shape[0])
         target = self._command(states, jnp.asarray(actions))
+        return self._advance(states, target, *self._physics(states, target))
+
+    def _physics(self, states: env.State, target):
+        """One control step of physics for the batch -> (qpos, qvel, ball, paddle, joints, cmds)."""
+        ctrl, cmds = self._controls(states, target)
         if self.name == "mjx":
-            out = jax.vmap(self.physics.step)(states.qpos, states.qvel, states.target, target)
-        else:
+            if ctrl is None:
+                out = jax.vmap(self.physics.step)(states.qpos, states.qvel, states.target, target)
+            else:
+                out = jax.vmap(self.physics.step_ctrl)(states.qpos, states.qvel, ctrl)
+        elif ctrl is None:
             out = self.physics.step(np.asarray(states.qpos), np.asarray(states.qvel),
                                     np.asarray(states.target), np.asarray(target))
-        return self._advance(states, target, *out)
+        else:
+            out = self.physics.step_ctrl(np.asarray(states.qpos), np.asarray(states.qvel), np.asarray(ctrl))
+        return (*out, cmds)
 
     # -- rollouts ------------------------------------------------------------------------
     def rollout(self, policy: Policy, params, key, throws, goals, horizon: int | None = None,
@@ -196,7 +217,14 @@ class Backend:
             return self._rollouts[key_](params, key, throws, jnp.asarray(goals))
         return self._c_rollout(policy, params, key, throws, goals, t_max, members)
 
+    def timing_draws(self, key, b: int):
+        """The per-episode timing (ttmjx.world.timing.Draw, [B] fields) that rollout(key) on B
+        throws draws: to line a station up with a rollout (tests/test_timing.py)."""
+        keys = jax.random.split(jax.random.split(key, 3)[0], b)
+        return jax.vmap(lambda k: timing.draw(self.cfg, jax.random.fold_in(k, 7)))(keys)
+
     def _reset_keys(self, key, throws, goals):
+        # Keep in step with timing_draws.
         k_reset, k_init, k_act = jax.random.split(key, 3)
         keys = jax.random.split(k_reset, goals.shape[0])
         f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
@@ -227,8 +255,7 @@ class Backend:
         for t in range(t_max):
             valid = ~np.asarray(states.events.done)
             carry, obs, target = act(params, carry, states, jax.random.fold_in(k_act, t))
-            out = self.physics.step(np.asarray(states.qpos), np.asarray(states.qvel),
-                                    np.asarray(states.target), np.asarray(target))
+            out = self._physics(states, target)
             frames.append(obs.frame), vels.append(obs.ball_vel), actions.append(target), valids.append(valid)
             states = self._advance(states, target, *out)
             if not valid.any():
@@ -248,7 +275,6 @@ class Backend:
         t_max = t_max or self.cfg.horizon
         init_b, _ = batched_policy(policy, members)
         act = self._act_fn(policy, members)
-        phys = jax.vmap(self.physics.step)
         advance = jax.vmap(functools.partial(env.advance, self.cfg, self.lay))
 
         def run(params, key, throws, goals):
@@ -259,7 +285,7 @@ class Backend:
                 carry, states = c
                 valid = ~states.events.done
                 carry, obs, target = act(params, carry, states, jax.random.fold_in(k_act, t))
-                states = advance(states, target, *phys(states.qpos, states.qvel, states.target, target))
+                states = advance(states, target, *self._physics(states, target))
                 return (carry, states), (obs.frame, obs.ball_vel, target, valid)
 
             (carry, states), (f, v, a, val) = jax.lax.scan(body, (carry, states), jnp.arange(t_max))

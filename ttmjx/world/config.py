@@ -187,6 +187,75 @@ class Throws:
 
 
 THROW_DISTRIBUTIONS = ("narrow", "any", "varied")
+
+@dataclasses.dataclass(frozen=True)
+class Timing:
+    """When the policy's inputs were sensed and when its commands act: one model for the training
+    world (ttmjx/world/timing.py, both backends) and the simulated station (deploy/station.py).
+
+    Sensors sample at their rate (None: every physics step) and deliver each sample its latency
+    (+ a uniform jitter) later; a sample may be dropped. At each control step the policy sees the
+    line through the two newest delivered samples, evaluated at the step's time and followed at
+    most `extrapolate_s` past the newest sample (then held): the robot runner's rule
+    (deploy/interp.py). Commands start acting `action_delay_s` after they are issued. With a
+    tracker rate, episodes start at the ball's first tracker sample after the launch (the
+    runner's trigger), not at the launch. Profiles: TIMING_PROFILES (docs/DESIGN.md gives the
+    sources of the nominal values)."""
+    tracker_hz: float | None = None
+    """Ball tracker rate (Hz); None: every physics step."""
+    tracker_latency_s: float = 0.0
+    """Delay from a ball sample to its delivery (s)."""
+    joint_hz: float | None = None
+    """Joint feedback rate (Hz); None: every physics step."""
+    joint_latency_s: float = 0.0
+    """Delay from a joint sample to its delivery (s)."""
+    action_delay_s: float = 0.0
+    """Delay from a command to the start of its motion (s)."""
+    jitter_s: float = 0.0
+    """Extra delivery delay of each sample, uniform in [0, jitter_s] (s); below one sample period."""
+    drop_prob: float = 0.0
+    """Probability that a sample is never delivered."""
+    extrapolate_s: float = 0.02
+    """How far past the newest sample its line is followed (s); the runner's max_extrapolate_s."""
+    random_extra_s: float = 0.0
+    """Per episode, each of the two latencies and the action delay gets an extra delay uniform in
+    [0, random_extra_s] (training randomization; 0: fixed)."""
+
+    def __post_init__(self):
+        for name in ("tracker_latency_s", "joint_latency_s", "action_delay_s", "jitter_s",
+                     "extrapolate_s", "random_extra_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"Timing.{name}={v!r}, expected a finite number of seconds >= 0")
+        for name in ("tracker_hz", "joint_hz"):
+            v = getattr(self, name)
+            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"Timing.{name}={v!r}, expected a rate in Hz > 0 or None")
+        if not 0.0 <= self.drop_prob < 1.0:
+            raise ValueError(f"Timing.drop_prob={self.drop_prob!r}, expected in [0, 1)")
+
+    @property
+    def ideal(self) -> bool:
+        """Every physics step sensed at once and every command acting at once."""
+        return (self.tracker_hz is None and self.joint_hz is None and self.tracker_latency_s == 0
+                and self.joint_latency_s == 0 and self.action_delay_s == 0 and self.jitter_s == 0
+                and self.drop_prob == 0 and self.random_extra_s == 0)
+
+    def max_delay_s(self) -> float:
+        """The longest latency or action delay an episode can draw (s)."""
+        return max(self.tracker_latency_s, self.joint_latency_s, self.action_delay_s) + self.random_extra_s + self.jitter_s
+
+
+# Timing profiles (`--world.timing` presets, `ttmjx robot run --timing`). zero: ideal sensing.
+# nominal: the paper's cell: tracker 125 Hz (stereo cameras), arm feedback ~240-250 Hz (EGM);
+# the latencies are assumed (the paper gives none): one camera frame plus detection for the
+# tracker, one EGM cycle for the feedback, two EGM cycles for a command. docs/DESIGN.md.
+TIMING_PROFILES = {
+    "zero": Timing(),
+    "nominal": Timing(tracker_hz=125.0, tracker_latency_s=0.010, joint_hz=250.0, joint_latency_s=0.004,
+                      action_delay_s=0.008, jitter_s=0.001),
+}
+
 CONTROL_RATES = (20, 60, 100)
 
 
@@ -211,6 +280,8 @@ class World:
     """True: 16-value observations with the ball velocity (the paper's original sim)."""
     frame_stack: int = 8
     """Frames in the observation stack (the frame-stack policy reads them)."""
+    timing: Timing = Timing()
+    """Sensor and actuation timing (default: ideal); TIMING_PROFILES names the lab's."""
 
     def __post_init__(self):
         if not isinstance(self.control_hz, int) or self.control_hz <= 0:
@@ -226,6 +297,22 @@ class World:
             raise ValueError(f"frame_stack must be >= 1, got {self.frame_stack}")
         if self.episode_s <= 0:
             raise ValueError(f"episode_s must be > 0, got {self.episode_s}")
+        for name in ("tracker_hz", "joint_hz"):
+            hz = getattr(self.timing, name)
+            if hz is not None:
+                k = 1.0 / (hz * self.physics_dt)
+                if abs(k - round(k)) > 1e-6 or round(k) < 1:
+                    raise ValueError(f"timing.{name}={hz} is not a whole number of physics steps of "
+                                     f"{self.physics_dt:.6g} s (1/(hz*dt) = {k:.4g}); pick a rate that divides it")
+        shortest = min(self.sample_period_s("tracker_hz"), self.sample_period_s("joint_hz"))
+        if self.timing.jitter_s and self.timing.jitter_s >= shortest:
+            raise ValueError(f"timing.jitter_s={self.timing.jitter_s} must be below the shortest sample "
+                             f"period ({shortest:.6g} s)")
+
+    def sample_period_s(self, name: str) -> float:
+        """Sample period (s) of timing.tracker_hz or timing.joint_hz (a physics step if None)."""
+        hz = getattr(self.timing, name)
+        return self.physics_dt if hz is None else 1.0 / hz
 
     @property
     def substeps(self) -> int:
@@ -277,7 +364,7 @@ def from_dict(cls, d: dict):
     return cls(**kwargs)
 
 
-_DATACLASSES = {c.__name__: c for c in (Table, Ball, Contacts, Robot, Throws, World)}
+_DATACLASSES = {c.__name__: c for c in (Table, Ball, Contacts, Robot, Throws, Timing, World)}
 
 
 def opponent_half(table: Table) -> np.ndarray:

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttmjx.world import ballphysics, observation
+from ttmjx.world import ballphysics, observation, timing
 from ttmjx.world.config import World
 
 # A velocity change this far from free flight within one physics step is a contact. Free-flight
@@ -58,6 +58,9 @@ class State(NamedTuple):
     frames: jax.Array     # [k, O] frame stack of observations up to now
     aim: jax.Array        # [2] thrower's aim (kept for the record)
     launch: jax.Array     # [9] launch position, velocity, spin (kept for the record)
+    hist: jax.Array       # [H, 11] joints and ball position per physics step ([1, 11] if timing is ideal)
+    cmds: jax.Array       # [K, 8] the last K commands, newest last ([1, 8] if timing is ideal)
+    timing: timing.Draw   # this episode's sensor and actuation timing (ttmjx.world.timing)
 
 
 class Policy(NamedTuple):
@@ -105,34 +108,71 @@ def home_pose(cfg: World, key):
 
 
 def reset(cfg: World, lay: Layout, key, launch_pos, launch_vel, launch_spin, aim, goal) -> State:
-    """State at the moment of launch: robot near home, ball at the thrower with its velocity."""
+    """State at the episode's start: robot near home, ball at the thrower with its velocity (with
+    a tracker rate, `lead` physics steps of free flight later: the first tracker sample)."""
     joints = home_pose(cfg, key)
+    draw = timing.draw(cfg, jax.random.fold_in(key, 7))   # fold_in: the home pose keeps its key
+    pos, vel = launch_pos, launch_vel
+    if not cfg.timing.ideal:
+        pos, vel = timing.fly(cfg, launch_pos, launch_vel, launch_spin, draw.lead)
     qpos = jnp.array(lay.qpos0, jnp.float32)
     qpos = qpos.at[jnp.array(lay.robot_qpos)].set(joints)
     qpos = qpos.at[lay.ball_qpos:lay.ball_qpos + 7].set(
-        jnp.concatenate([launch_pos, jnp.array([1.0, 0.0, 0.0, 0.0])]))
+        jnp.concatenate([pos, jnp.array([1.0, 0.0, 0.0, 0.0])]))
     nv = len(lay.qpos0) - 1  # one free joint: nq = nv + 1
     qvel = jnp.zeros(nv, jnp.float32)
     # Identity orientation at launch, so the local angular velocity equals the world spin.
-    qvel = qvel.at[lay.ball_qvel:lay.ball_qvel + 6].set(jnp.concatenate([launch_vel, launch_spin]))
+    qvel = qvel.at[lay.ball_qvel:lay.ball_qvel + 6].set(jnp.concatenate([vel, launch_spin]))
     f0 = frame(cfg, lay, qpos, qvel, goal)
-    return State(qpos=qpos, qvel=qvel, target=joints, goal=jnp.asarray(goal, jnp.float32),
-                 t=jnp.int32(0), events=no_events(),
-                 frames=jnp.broadcast_to(f0, (cfg.frame_stack, f0.shape[0])),
-                 aim=jnp.asarray(aim, jnp.float32),
-                 launch=jnp.concatenate([launch_pos, launch_vel, launch_spin]).astype(jnp.float32))
+    h, k = (1, 1) if cfg.timing.ideal else (timing.history_len(cfg), timing.command_len(cfg))
+    row = jnp.concatenate([joints, pos]).astype(jnp.float32)
+    state = State(qpos=qpos, qvel=qvel, target=joints, goal=jnp.asarray(goal, jnp.float32),
+                  t=jnp.int32(0), events=no_events(),
+                  frames=jnp.broadcast_to(f0, (cfg.frame_stack, f0.shape[0])),
+                  aim=jnp.asarray(aim, jnp.float32),
+                  launch=jnp.concatenate([launch_pos, launch_vel, launch_spin]).astype(jnp.float32),
+                  hist=jnp.broadcast_to(row, (h, 11)), cmds=jnp.broadcast_to(joints, (k, 8)), timing=draw)
+    if cfg.timing.ideal:
+        return state
+    f0 = sensed_frame(cfg, lay, state, qpos, qvel)
+    return state._replace(frames=jnp.broadcast_to(f0, (cfg.frame_stack, f0.shape[0])))
+
+
+def sensed_frame(cfg: World, lay: Layout, state: State, qpos, qvel):
+    """[O] the frame the policy sees at tick state.t under the timing model (state.hist holds the
+    physics up to this tick): each sensor's samples delivered by the later of the tick and the
+    runner's trigger (ttmjx.world.timing.read). qpos, qvel: unused (the signature of `frame`)."""
+    d = state.timing
+    s = cfg.substeps
+    j_now = state.t * s
+    avail = jnp.maximum(j_now.astype(jnp.float32), d.trigger)
+    # The runner reads the newest joint sample once per tick (every 1 ms while it waits for the
+    # ball, so up to the trigger its samples are dense); the ball tracker hands over every sample.
+    prev = jnp.maximum((j_now - s).astype(jnp.float32), d.trigger)
+    joints, _ = timing.read(cfg, state.hist[:, :8], j_now, avail, d.joint_latency,
+                            timing.steps_per_sample(cfg, "joint_hz"), d.joint_phase, -(1 << 20), d.key,
+                            timing.JOINT, prev_avail=prev)
+    ball, slope = timing.read(cfg, state.hist[:, 8:], j_now, avail, d.ball_latency,
+                              timing.steps_per_sample(cfg, "tracker_hz"), jnp.int32(0), 0, d.key, timing.BALL)
+    vel = slope / cfg.physics_dt if cfg.ball_velocity_obs else None
+    return observation.make_frame(joints, ball, state.goal, vel, xp=jnp).astype(jnp.float32)
 
 
 def observe(cfg: World, lay: Layout, state: State) -> Obs:
-    return Obs(frame=state.frames[-1], ball_vel=state.qvel[lay.ball_qvel:lay.ball_qvel + 3],
-               frames=state.frames, t=state.t)
+    """What the policy sees; ball_vel is the frame's velocity (sensed) where it has one."""
+    f = state.frames[-1]
+    vel = f[observation.BALL_VEL] if cfg.ball_velocity_obs else state.qvel[lay.ball_qvel:lay.ball_qvel + 3]
+    return Obs(frame=f, ball_vel=vel, frames=state.frames, t=state.t)
 
 
 def command(cfg: World, state: State, action):
     """[8] joint targets actually sent: the action clipped to the joint ranges and to what the
-    speed limits allow in one control step from the last target. Non-finite actions hold."""
+    speed limits allow in one control step from the last target. Non-finite actions hold, and so
+    does every action before the runner would act (timing: t < n_exec)."""
     r = cfg.robot
     action = jnp.where(jnp.isfinite(action), action, state.target)
+    if not cfg.timing.ideal:
+        action = jnp.where(state.t < state.timing.n_exec, state.target, action)
     target = jnp.clip(action, jnp.array(r.lower), jnp.array(r.upper))
     max_step = jnp.array(r.max_speed) * r.speed_margin * cfg.control_dt
     return state.target + jnp.clip(target - state.target, -max_step, max_step)
@@ -204,18 +244,36 @@ def update_events(cfg: World, ev: Events, t, ball_prev, ball, paddle) -> Events:
     return ev
 
 
-def advance(cfg: World, lay: Layout, state: State, target, qpos, qvel, ball, paddle) -> State:
+def controls(cfg: World, state: State, target):
+    """The physics' targets for this control step: ([S, 8] per physics step, the command history
+    to keep). Ideal timing: the ramp from the last target to `target` (ttmjx.world.backends)."""
+    if cfg.timing.ideal:
+        return None, state.cmds
+    cmds = jnp.concatenate([state.cmds[1:], target[None]])
+    return timing.substep_targets(cfg, cmds, state.t, state.timing.action_delay), cmds
+
+
+def advance(cfg: World, lay: Layout, state: State, target, qpos, qvel, ball, paddle, joints=None,
+            cmds=None) -> State:
     """The state after one control step whose physics produced qpos, qvel and the per-physics-
-    step ball [S, 6] and paddle [S, 3] tracks."""
+    step ball [S, 6], paddle [S, 3] and joints [S, 8] tracks (joints and cmds, from controls(),
+    are needed only with a timing model)."""
     ball_prev = jnp.concatenate([state.qpos[lay.ball_qpos:lay.ball_qpos + 3],
                                  state.qvel[lay.ball_qvel:lay.ball_qvel + 3]])
     ev = update_events(cfg, state.events, state.t, ball_prev, ball, paddle)
     timeout = ~ev.done & (state.t + 1 >= cfg.horizon)
     ev = ev._replace(done=ev.done | timeout, done_step=jnp.where(timeout, state.t, ev.done_step))
-    f = frame(cfg, lay, qpos, qvel, state.goal)
-    frames = jnp.concatenate([state.frames[1:], f[None]])
-    return state._replace(qpos=qpos.astype(jnp.float32), qvel=qvel.astype(jnp.float32),
-                          target=target, t=state.t + 1, events=ev, frames=frames)
+    if cfg.timing.ideal:
+        f = frame(cfg, lay, qpos, qvel, state.goal)
+        frames = jnp.concatenate([state.frames[1:], f[None]])
+        return state._replace(qpos=qpos.astype(jnp.float32), qvel=qvel.astype(jnp.float32),
+                              target=target, t=state.t + 1, events=ev, frames=frames)
+    rows = jnp.concatenate([joints, ball[:, :3]], axis=-1).astype(jnp.float32)
+    hist = jnp.concatenate([state.hist[rows.shape[0]:], rows])
+    state = state._replace(qpos=qpos.astype(jnp.float32), qvel=qvel.astype(jnp.float32), target=target,
+                           t=state.t + 1, events=ev, hist=hist, cmds=cmds)
+    f = sensed_frame(cfg, lay, state, state.qpos, state.qvel)
+    return state._replace(frames=jnp.concatenate([state.frames[1:], f[None]]))
 
 
 def check_goals(goals, n: int | None = None) -> np.ndarray:
