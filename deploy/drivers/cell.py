@@ -216,7 +216,8 @@ class _Session:
             return ep
         events = self.cell.launcher.call("finish", max_s=self.finish_s)["events"]
         from deploy.station import complete_episode
-        return complete_episode(ep, _throw_events(events), self.runner.contract)
+        ep = complete_episode(ep, _throw_events(events), self.runner.contract)
+        return Episode(ep.traj, ep.extras, {**ep.meta, "station": "cell"})
 
     def summary(self, episodes, goals, wall_s: float) -> dict:
         r = self.runner

@@ -152,8 +152,10 @@ class ModbusGantry:
     def _error(self, e: Exception) -> None:
         self.errors += 1
         self.faults.add(self.clock.now(), "gantry", "gantry_transaction", f"{type(e).__name__}: {e}")
-        if not self.client.connected:
-            self.client.connect()           # a dropped connection: try again next period
+        # A fresh connection: a late reply to the failed request would otherwise be read as the
+        # reply to the next one (Modbus TCP matches them by transaction id and skips, slowly).
+        self.client.close()
+        self.client.connect()
 
     def close(self) -> None:
         self._stop.set()
