@@ -70,15 +70,21 @@ def over_sockets(policy: str, goals, seed: int, faults: str, egm_hz: float) -> d
     proc = subprocess.Popen([sys.executable, "-m", "ttmjx.cli", "robot", "serve", "--config", path,
                              "--policy", policy, "--seed", str(seed), "--faults", faults,
                              "--egm-hz", str(egm_hz), "--json"], stdout=subprocess.PIPE, env=env, text=True)
+    out = os.path.join(tmp, "episodes")
     try:
         assert '"ready": true' in proc.stdout.readline()
-        out = os.path.join(tmp, "episodes")
         summary = run_cell(policy, goals, path, out)
+        from deploy.drivers.cell import Launcher
+        launcher = Launcher(cfg.launcher)
+        summary["server"] = launcher.call("stats")
+        launcher.close()
     finally:
         proc.send_signal(signal.SIGINT)
-        server = proc.communicate(timeout=30)[0].strip().splitlines()
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
     summary["timing"] = tick_timing(out, len(goals))
-    summary["server"] = json.loads(server[-1]) if server else None
     return summary
 
 
