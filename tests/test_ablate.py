@@ -53,8 +53,13 @@ def test_derived_overrides_follow_the_base():
 def test_invalid_variants_are_named():
     with pytest.raises(ValueError, match=r"^RunConfig has no field 'nope'"):
         ablate.apply(ablate.SCALES["tiny"].base("sim"), {"nope.x": 1})
-    bad = ablate.apply(ablate.SCALES["tiny"].base("sim"), {"demo_source": "human", "backend": "c"})
-    with pytest.raises(ValueError, match=r"demo_source='human'; expected one of \("):
+    # RunConfig refuses an unknown demonstrator itself (ablate.check_choices covers Literal fields
+    # whose dataclass does not check them).
+    with pytest.raises(ValueError, match=r"demo_source='human', expected 'paper', 'es' or 'oracle'"):
+        ablate.apply(ablate.SCALES["tiny"].base("sim"), {"demo_source": "human", "backend": "c"})
+    bad = ablate.apply(ablate.SCALES["tiny"].base("sim"), {"backend": "c"})
+    object.__setattr__(bad, "backend", "tpu")
+    with pytest.raises(ValueError, match=r"backend='tpu'; expected one of \("):
         ablate.check_choices(bad)
     with pytest.raises(ValueError, match="TrainConfig.members=0"):
         ablate.apply(ablate.SCALES["tiny"].base("sim"), {"train.members": 0})
