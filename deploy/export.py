@@ -468,6 +468,15 @@ def export_checkpoint(path: str, out_dir: str, step: int | None = None, member: 
 # --------------------------------------------------------------------------------------------
 # Load
 # --------------------------------------------------------------------------------------------
+def _check_format(doc, path: str, what: str, version_key: str) -> None:
+    """ExportError unless doc is a dict of this export format (`format`) and version (`version_key`)."""
+    if not isinstance(doc, dict) or doc.get("format") != EXPORT_FORMAT:
+        raise ExportError(f"{path}: not a {EXPORT_FORMAT} {what}")
+    if doc.get(version_key) != EXPORT_VERSION:
+        raise ExportError(f"{path}: export format version {doc.get(version_key)!r}, this runner "
+                          f"reads version {EXPORT_VERSION}")
+
+
 def _read_manifest(directory: str) -> dict:
     """manifest.json's `files` (name -> {sha256, bytes}), its format and version checked."""
     path = os.path.join(directory, MANIFEST_FILE)
@@ -482,11 +491,7 @@ def _read_manifest(directory: str) -> dict:
                           f"with `ttmjx export`)") from None
     except (OSError, ValueError) as e:
         raise ExportError(f"{path}: unreadable manifest ({e})") from e
-    if not isinstance(doc, dict) or doc.get("format") != EXPORT_FORMAT:
-        raise ExportError(f"{path}: not a {EXPORT_FORMAT} manifest")
-    if doc.get("format_version") != EXPORT_VERSION:
-        raise ExportError(f"{path}: export format version {doc.get('format_version')!r}, this runner "
-                          f"reads version {EXPORT_VERSION}")
+    _check_format(doc, path, "manifest", "format_version")
     listed = doc.get("files")
     if not isinstance(listed, dict) or not all(
             isinstance(v, dict) and isinstance(v.get("sha256"), str) for v in listed.values()):
@@ -534,11 +539,7 @@ def read_contract(directory: str, verified: dict | None = None) -> dict:
         doc = json.loads(verified[CONTRACT_FILE])
     except ValueError as e:
         raise ExportError(f"{path}: unreadable contract ({e})") from e
-    if not isinstance(doc, dict) or doc.get("format") != EXPORT_FORMAT:
-        raise ExportError(f"{path}: not a {EXPORT_FORMAT} contract")
-    if doc.get("version") != EXPORT_VERSION:
-        raise ExportError(f"{path}: export version {doc.get('version')!r}, this runner reads "
-                          f"version {EXPORT_VERSION}")
+    _check_format(doc, path, "contract", "version")
     for key in ("robot", "runtime", "policy", "weights", "golden", "normalization"):
         if not isinstance(doc.get(key), dict):
             raise ExportError(f"{path}: the contract has no {key!r} section")

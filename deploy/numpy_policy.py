@@ -198,21 +198,15 @@ class _Member:
         return y * self.act_std + self.act_mean
 
 
-class ExportedPolicy:
-    """A models/ policy (one member or an ensemble) on numpy; deploy.runner's NumpyPolicy."""
-
-    def __init__(self, spec: PolicySpec, tensors: dict, policy_hash: str = "unknown"):
-        self.spec = spec.check()
-        self.members = check_tensors(spec, tensors)
-        self.policy_hash = policy_hash
-        self._m = [_Member(spec, tensors, i) for i in range(self.members)]
-        self._prepared = None
-        self.self_test_error: float | None = None   # set by deploy.export.load_export
-        self.contract_doc: dict | None = None       # the export's contract.json (load_export)
+class StepPolicy:
+    """What the numpy and the ONNX engines share (deploy.runner's NumpyPolicy): the recurrent
+    state's shape, the input checks, and a whole episode from its per-step `_step_all`."""
+    spec: PolicySpec
+    members: int
 
     @property
     def state_shape(self) -> tuple:
-        """Shape of the recurrent state; () for the stateless MLP."""
+        """Shape of the recurrent state [N, L, 2, H]; () for the stateless MLP."""
         if self.spec.kind != "lstm":
             return ()
         return (self.members, self.spec.layers, 2, self.spec.hidden)
@@ -223,7 +217,8 @@ class ExportedPolicy:
             return None
         return np.zeros(self.state_shape, np.float32)
 
-    def _obs(self, frame, frames):
+    def _obs(self, frame, frames) -> np.ndarray:
+        """The step's input, checked: frame [O] (LSTM) or frames [k, O] (MLP), float32."""
         o, k = self.spec.obs_size, self.spec.input_frames
         if self.spec.kind == "lstm":
             x = np.asarray(frame, np.float32)
@@ -234,6 +229,52 @@ class ExportedPolicy:
         if x.shape != (k, o):
             raise ValueError(f"policy step: frames has shape {x.shape}, expected ({k}, {o})")
         return x
+
+    def _state(self, state) -> np.ndarray:
+        """The LSTM state as float32, checked against state_shape."""
+        s = np.asarray(state, np.float32)
+        if s.shape != self.state_shape:
+            raise ValueError(f"policy step: state has shape {s.shape}, expected {self.state_shape}")
+        return s
+
+    def _step_all(self, state, frame, frames) -> tuple:
+        """(new state, actions [members, 8], action [8]) of one control step."""
+        raise NotImplementedError
+
+    def step_members(self, state, frame, frames) -> tuple:
+        """(new state, actions [members, 8]): one control step of every member."""
+        state, acts, _ = self._step_all(state, frame, frames)
+        return state, acts
+
+    def step(self, state, frame, frames) -> tuple:
+        """frame [O] (= frames[-1]), frames [k, O] -> (state, action [8]): the ensemble's action."""
+        state, _, action = self._step_all(state, frame, frames)
+        return state, action
+
+    def run(self, frames: np.ndarray, stacks: np.ndarray | None = None, members: bool = False):
+        """A whole episode from reset: frames [L, O] (and stacks [L, k, O] for the MLP) ->
+        actions [L, 8] (or [members, L, 8] with members=True)."""
+        frames = np.asarray(frames, np.float32)
+        stacks = frames[:, None, :] if stacks is None else stacks
+        state, out = self.reset(), []
+        for t in range(frames.shape[0]):
+            state, acts, action = self._step_all(state, frames[t], stacks[t])
+            out.append(acts if members else action)
+        out = np.stack(out)
+        return np.swapaxes(out, 0, 1) if members else out
+
+
+class ExportedPolicy(StepPolicy):
+    """A models/ policy (one member or an ensemble) on numpy; deploy.runner's NumpyPolicy."""
+
+    def __init__(self, spec: PolicySpec, tensors: dict, policy_hash: str = "unknown"):
+        self.spec = spec.check()
+        self.members = check_tensors(spec, tensors)
+        self.policy_hash = policy_hash
+        self._m = [_Member(spec, tensors, i) for i in range(self.members)]
+        self._prepared = None
+        self.self_test_error: float | None = None   # set by deploy.export.load_export
+        self.contract_doc: dict | None = None       # the export's contract.json (load_export)
 
     def prepare(self, state) -> None:
         """Optional, between control ticks: compute the part of the NEXT step that depends on
@@ -248,42 +289,21 @@ class ExportedPolicy:
             raise ValueError(f"policy prepare: state has shape {state_arr.shape}, expected {self.state_shape}")
         self._prepared = (state, [m.recurrent(state_arr[i]) for i, m in enumerate(self._m)])
 
-    def step_members(self, state, frame, frames) -> tuple:
-        """(new state, actions [members, 8]): one control step of every member."""
+    def _step_all(self, state, frame, frames) -> tuple:
         x = self._obs(frame, frames)
         acts = np.empty((self.members, ACTION_SIZE), np.float32)
         if self.spec.kind == "lstm":
             prepared, self._prepared = self._prepared, None
             rec = prepared[1] if prepared is not None and prepared[0] is state else None
-            state = np.asarray(state, np.float32)
-            if state.shape != self.state_shape:
-                raise ValueError(f"policy step: state has shape {state.shape}, expected {self.state_shape}")
+            state = self._state(state)
             new = np.empty_like(state)
             for i, m in enumerate(self._m):
                 acts[i] = m.lstm_step(state[i], new[i], x, None if rec is None else rec[i])
-            return new, acts
-        for i, m in enumerate(self._m):
-            acts[i] = m.mlp_step(x)
-        return None, acts
-
-    def step(self, state, frame, frames) -> tuple:
-        """frame [13] (= frames[-1]), frames [k, 13] -> (state, action [8]): the mean over members."""
-        state, acts = self.step_members(state, frame, frames)
-        return state, (acts[0] if self.members == 1 else acts.mean(axis=0))
-
-    def run(self, frames: np.ndarray, stacks: np.ndarray | None = None, members: bool = False):
-        """A whole episode from reset: frames [L, O] (and stacks [L, k, O] for the MLP) ->
-        actions [L, 8] (or [members, L, 8] with members=True)."""
-        frames = np.asarray(frames, np.float32)
-        if stacks is None:
-            stacks = frames[:, None, :]
-        state = self.reset()
-        out = []
-        for t in range(frames.shape[0]):
-            state, acts = self.step_members(state, frames[t], stacks[t])
-            out.append(acts if members else acts.mean(axis=0))
-        out = np.stack(out)
-        return np.swapaxes(out, 0, 1) if members else out
+        else:
+            new = None
+            for i, m in enumerate(self._m):
+                acts[i] = m.mlp_step(x)
+        return new, acts, (acts[0] if self.members == 1 else acts.mean(axis=0))
 
 
 def random_tensors(spec: PolicySpec, members: int = 1, seed: int = 0, scale: float = 1.0) -> dict:

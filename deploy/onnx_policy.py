@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from deploy.numpy_policy import _GATES, ACTION_SIZE, PolicySpec, check_tensors
+from deploy.numpy_policy import _GATES, ACTION_SIZE, PolicySpec, StepPolicy, check_tensors
 
 OPSET = 17
 IR_VERSION = 8
@@ -206,7 +206,7 @@ def reference_session(model: bytes):
     return ReferenceEvaluator(import_onnx().load_from_string(model))
 
 
-class OnnxPolicy:
+class OnnxPolicy(StepPolicy):
     """An exported policy on onnxruntime with numpy_policy.ExportedPolicy's interface
     (`reset`, `step`, `step_members`, `run`), so the runner or a benchmark can take either."""
 
@@ -218,54 +218,14 @@ class OnnxPolicy:
         self.self_test_error: float | None = None
         self.contract_doc: dict | None = None
 
-    @property
-    def state_shape(self) -> tuple:
-        if self.spec.kind != "lstm":
-            return ()
-        return (self.members, self.spec.layers, 2, self.spec.hidden)
-
-    def reset(self):
-        """Zeros [N, L, 2, H] (LSTM) or None (frame stack), as numpy_policy."""
-        return np.zeros(self.state_shape, np.float32) if self.spec.kind == "lstm" else None
-
     def prepare(self, state) -> None:
         """No-op (the runner may call it between ticks; the graph does the whole step)."""
 
-    def _run(self, state, frame, frames) -> tuple:
-        """(action [8], actions [N, 8], new state or None): the graph's outputs for one step."""
-        o, k = self.spec.obs_size, self.spec.input_frames
+    def _step_all(self, state, frame, frames) -> tuple:
+        """The graph's outputs for one step; `action` is the mean over members, in the graph."""
+        x = self._obs(frame, frames)
         if self.spec.kind == "lstm":
-            x = np.asarray(frame, np.float32)
-            s = np.asarray(state, np.float32)
-            if x.shape != (o,) or s.shape != self.state_shape:
-                raise ValueError(f"policy step: frame {x.shape} / state {s.shape}, expected ({o},) / "
-                                 f"{self.state_shape}")
-            action, acts, new = self._sess.run(self._want, {"frame": x, "state": s})
-            return action, acts, new
-        x = np.asarray(frames, np.float32)
-        if x.shape != (k, o):
-            raise ValueError(f"policy step: frames has shape {x.shape}, expected ({k}, {o})")
+            action, acts, new = self._sess.run(self._want, {"frame": x, "state": self._state(state)})
+            return new, acts, action
         action, acts = self._sess.run(self._want, {"frames": x})
-        return action, acts, None
-
-    def step_members(self, state, frame, frames) -> tuple:
-        """(new state, actions [N, 8]) of one control step."""
-        _, acts, new = self._run(state, frame, frames)
-        return new, acts
-
-    def step(self, state, frame, frames) -> tuple:
-        """(state, action [8]): the graph's `action` (the mean over members, in the graph)."""
-        action, _, new = self._run(state, frame, frames)
-        return new, action
-
-    def run(self, frames: np.ndarray, stacks: np.ndarray | None = None, members: bool = False):
-        """A whole episode from reset: frames [L, O] (stacks [L, k, O] for the MLP) -> actions
-        [L, 8] (or [N, L, 8] with members=True)."""
-        frames = np.asarray(frames, np.float32)
-        stacks = frames[:, None, :] if stacks is None else stacks
-        state, out = self.reset(), []
-        for t in range(frames.shape[0]):
-            action, acts, state = self._run(state, frames[t], stacks[t])
-            out.append(acts if members else action)
-        out = np.stack(out)
-        return np.swapaxes(out, 0, 1) if members else out
+        return None, acts, action

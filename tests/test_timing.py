@@ -176,7 +176,7 @@ def test_both_backends_sense_and_act_under_the_same_timing():
     from ttmjx.world import backends
     from ttmjx.world.thrower import Throw
     cfg = dataclasses.replace(World().with_throws("narrow"),
-                              timing=dataclasses.replace(TIMING_PROFILES["nominal"], random_extra_s=0.02))
+                              timing=dataclasses.replace(TIMING_PROFILES["nominal"], delay_spread_s=0.01))
     home, freq = jnp.array(cfg.robot.home), jnp.linspace(1.0, 3.0, 8)
     policy = backends.Policy(init=lambda p, k: jnp.zeros(()), apply=lambda p, c, obs, k: (
         c, home + 0.05 * jnp.sin(2 * jnp.pi * freq * obs.t.astype(jnp.float32) * cfg.control_dt)))

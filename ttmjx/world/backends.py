@@ -184,7 +184,8 @@ class Backend:
 
     def _physics(self, states: env.State, target):
         """One control step of physics for the batch -> (qpos, qvel, ball, paddle, joints, cmds)."""
-        ctrl, cmds = self._controls(states, target)
+        # Ideal timing ramps inside the physics step (no command history to keep).
+        ctrl, cmds = (None, states.cmds) if self.cfg.timing.ideal else self._controls(states, target)
         if self.name == "mjx":
             if ctrl is None:
                 out = jax.vmap(self.physics.step)(states.qpos, states.qvel, states.target, target)
@@ -220,13 +221,11 @@ class Backend:
     def timing_draws(self, key, b: int):
         """The per-episode timing (ttmjx.world.timing.Draw, [B] fields) that rollout(key) on B
         throws draws: to line a station up with a rollout (tests/test_timing.py)."""
-        keys = jax.random.split(jax.random.split(key, 3)[0], b)
-        return jax.vmap(lambda k: timing.draw(self.cfg, jax.random.fold_in(k, 7)))(keys)
+        keys, _, _ = _episode_keys(key, b)
+        return jax.vmap(lambda k: timing.draw(self.cfg, env.timing_key(k)))(keys)
 
     def _reset_keys(self, key, throws, goals):
-        # Keep in step with timing_draws.
-        k_reset, k_init, k_act = jax.random.split(key, 3)
-        keys = jax.random.split(k_reset, goals.shape[0])
+        keys, k_init, k_act = _episode_keys(key, goals.shape[0])
         f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
         states = self._reset(keys, f32(throws.launch_pos), f32(throws.launch_vel), f32(throws.launch_spin),
                              f32(throws.aim), f32(goals))
@@ -292,6 +291,12 @@ class Backend:
             sw = lambda x: jnp.swapaxes(x, 0, 1)  # noqa: E731
             return _record(self.cfg, self.lay, states, sw(f), sw(v), sw(a), sw(val))
         return run
+
+
+def _episode_keys(key, b: int):
+    """(reset keys [B], policy-init key, action key) of a rollout."""
+    k_reset, k_init, k_act = jax.random.split(key, 3)
+    return jax.random.split(k_reset, b), k_init, k_act
 
 
 def batched_policy(policy: Policy, members: int | None = None):

@@ -217,13 +217,14 @@ class Timing:
     """Probability that a sample is never delivered."""
     extrapolate_s: float = 0.02
     """How far past the newest sample its line is followed (s); the runner's max_extrapolate_s."""
-    random_extra_s: float = 0.0
-    """Per episode, each of the two latencies and the action delay gets an extra delay uniform in
-    [0, random_extra_s] (training randomization; 0: fixed)."""
+    delay_spread_s: float = 0.0
+    """Per episode, each of the two latencies and the action delay is shifted by a uniform draw in
+    [-delay_spread_s, +delay_spread_s], never below zero (training randomization around the
+    profile, so the profile itself sits in the middle of what training saw; 0: fixed)."""
 
     def __post_init__(self):
         for name in ("tracker_latency_s", "joint_latency_s", "action_delay_s", "jitter_s",
-                     "extrapolate_s", "random_extra_s"):
+                     "extrapolate_s", "delay_spread_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"Timing.{name}={v!r}, expected a finite number of seconds >= 0")
@@ -239,11 +240,11 @@ class Timing:
         """Every physics step sensed at once and every command acting at once."""
         return (self.tracker_hz is None and self.joint_hz is None and self.tracker_latency_s == 0
                 and self.joint_latency_s == 0 and self.action_delay_s == 0 and self.jitter_s == 0
-                and self.drop_prob == 0 and self.random_extra_s == 0)
+                and self.drop_prob == 0 and self.delay_spread_s == 0)
 
     def max_delay_s(self) -> float:
         """The longest latency or action delay an episode can draw (s)."""
-        return max(self.tracker_latency_s, self.joint_latency_s, self.action_delay_s) + self.random_extra_s + self.jitter_s
+        return max(self.tracker_latency_s, self.joint_latency_s, self.action_delay_s) + self.delay_spread_s + self.jitter_s
 
 
 # Timing profiles (`--world.timing` presets, `ttmjx robot run --timing`). zero: ideal sensing.

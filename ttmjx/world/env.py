@@ -107,11 +107,17 @@ def home_pose(cfg: World, key):
     return jnp.clip(jnp.array(r.home) + noise, jnp.array(r.lower), jnp.array(r.upper))
 
 
+def timing_key(key):
+    """The key of an episode's timing draw, from its reset key (folded in: the home pose keeps
+    the reset key itself, so adding the timing model changed no ideal-timing rollout)."""
+    return jax.random.fold_in(key, 7)
+
+
 def reset(cfg: World, lay: Layout, key, launch_pos, launch_vel, launch_spin, aim, goal) -> State:
     """State at the episode's start: robot near home, ball at the thrower with its velocity (with
     a tracker rate, `lead` physics steps of free flight later: the first tracker sample)."""
     joints = home_pose(cfg, key)
-    draw = timing.draw(cfg, jax.random.fold_in(key, 7))   # fold_in: the home pose keeps its key
+    draw = timing.draw(cfg, timing_key(key))
     pos, vel = launch_pos, launch_vel
     if not cfg.timing.ideal:
         pos, vel = timing.fly(cfg, launch_pos, launch_vel, launch_spin, draw.lead)
@@ -134,14 +140,14 @@ def reset(cfg: World, lay: Layout, key, launch_pos, launch_vel, launch_spin, aim
                   hist=jnp.broadcast_to(row, (h, 11)), cmds=jnp.broadcast_to(joints, (k, 8)), timing=draw)
     if cfg.timing.ideal:
         return state
-    f0 = sensed_frame(cfg, lay, state, qpos, qvel)
+    f0 = sensed_frame(cfg, state)
     return state._replace(frames=jnp.broadcast_to(f0, (cfg.frame_stack, f0.shape[0])))
 
 
-def sensed_frame(cfg: World, lay: Layout, state: State, qpos, qvel):
+def sensed_frame(cfg: World, state: State):
     """[O] the frame the policy sees at tick state.t under the timing model (state.hist holds the
     physics up to this tick): each sensor's samples delivered by the later of the tick and the
-    runner's trigger (ttmjx.world.timing.read). qpos, qvel: unused (the signature of `frame`)."""
+    runner's trigger (ttmjx.world.timing.read)."""
     d = state.timing
     s = cfg.substeps
     j_now = state.t * s
@@ -272,7 +278,7 @@ def advance(cfg: World, lay: Layout, state: State, target, qpos, qvel, ball, pad
     hist = jnp.concatenate([state.hist[rows.shape[0]:], rows])
     state = state._replace(qpos=qpos.astype(jnp.float32), qvel=qvel.astype(jnp.float32), target=target,
                            t=state.t + 1, events=ev, hist=hist, cmds=cmds)
-    f = sensed_frame(cfg, lay, state, state.qpos, state.qvel)
+    f = sensed_frame(cfg, state)
     return state._replace(frames=jnp.concatenate([state.frames[1:], f[None]]))
 
 

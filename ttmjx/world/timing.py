@@ -67,22 +67,24 @@ def history_len(cfg: World) -> int:
 
 def command_len(cfg: World) -> int:
     """K: commands kept for the delayed ramps."""
-    return int(math.ceil((cfg.timing.action_delay_s + cfg.timing.random_extra_s) / cfg.control_dt)) + 2
+    return int(math.ceil((cfg.timing.action_delay_s + cfg.timing.delay_spread_s) / cfg.control_dt)) + 2
 
 
 def draw(cfg: World, key) -> Draw:
     """The timing of one episode: fixed delays plus the per-episode randomization."""
     tm, dt = cfg.timing, cfg.physics_dt
     k_extra, k_phase, k_lead, k_sample = jax.random.split(key, 4)
-    extra = jax.random.uniform(k_extra, (3,), maxval=tm.random_extra_s) if tm.random_extra_s else jnp.zeros(3)
+    r = tm.delay_spread_s
+    shift = jax.random.uniform(k_extra, (3,), minval=-r, maxval=r) / dt if r else jnp.zeros(3)
+    base = jnp.array([tm.tracker_latency_s, tm.joint_latency_s, tm.action_delay_s], jnp.float32) / dt
+    delays = jnp.maximum(base + shift, 0.0)            # [ball, joints, commands] in physics steps
     eb, ej = steps_per_sample(cfg, "tracker_hz"), steps_per_sample(cfg, "joint_hz")
-    ball_lat = jnp.float32(tm.tracker_latency_s / dt) + extra[0] / dt
+    ball_lat = delays[0]
     lead = jax.random.randint(k_lead, (), 0, eb) if tm.tracker_hz is not None else jnp.int32(0)
     # The runner notices the ball when its second sample (physics step E_ball) is delivered.
     trigger = jnp.float32(eb) + ball_lat if tm.tracker_hz is not None else jnp.float32(0.0)
     return Draw(ball_latency=ball_lat.astype(jnp.float32),
-                joint_latency=(jnp.float32(tm.joint_latency_s / dt) + extra[1] / dt).astype(jnp.float32),
-                action_delay=(jnp.float32(tm.action_delay_s / dt) + extra[2] / dt).astype(jnp.float32),
+                joint_latency=delays[1].astype(jnp.float32), action_delay=delays[2].astype(jnp.float32),
                 joint_phase=jax.random.randint(k_phase, (), 0, ej).astype(jnp.int32),
                 lead=jnp.asarray(lead, jnp.int32), trigger=trigger.astype(jnp.float32),
                 n_exec=jnp.ceil(trigger / cfg.substeps - 1e-6).astype(jnp.int32), key=k_sample)
