@@ -12,10 +12,14 @@ rehearses the deployment over real sockets:
   deploy/drivers/tracker.py's wire format, stamped with this computer's CLOCK_MONOTONIC.
 * Launcher and referee (JSON lines over TCP): `throw` launches the station's next throw,
   `finish` returns its events (hit, landing...) to complete the episode log, `faults` changes
-  the injected faults, `stats` returns counters.
+  the injected faults, `stats` returns counters, `arrivals` (since=t) the time each new arm and
+  gantry target reached the station (for the command transport delay, scripts/cell_figures.py).
 
-Targets from both protocols are merged into the station's one 8-joint target (set_target,
-ramped over a control period as in-process), applied when either changes.
+The arm's and the gantry's targets are separate, as on the cell (two controllers): each part
+ramps toward its newest target (over a control period, as in-process) from when it arrived on
+its protocol, plus the timing profile's action delay (deploy/serve_station.py). Feedback (EGM
+joints, Modbus actual positions) is the station's newest joint sample delivered by then (its
+joint rate, latency and jitter), and the tracker stream its ball samples as they are delivered.
 
 Faults (`--faults`, or the launcher's `faults` command; FAULT_KINDS): per stream (egm, tracker,
 modbus) `stream.kind=value`, comma separated, e.g. `egm.loss=0.05,modbus.delay_ms=10`. Times
@@ -29,6 +33,7 @@ import dataclasses
 import heapq
 import json
 import math
+import select
 import socket
 import socketserver
 import threading
@@ -48,6 +53,7 @@ from deploy.drivers.tracker import pack_sample
 from deploy.hardware import MonotonicClock
 
 EGM_HZ = 250.0
+ARRIVALS_KEPT = 100_000         # new targets remembered for the `arrivals` command (~7 min at 100 Hz)
 # What each stream's faults may name: probabilities per message, delays in ms, times in s.
 FAULT_KINDS = {
     "egm": ("loss", "delay_ms", "reorder", "duplicate", "malformed", "stop_s", "nan", "range",
@@ -60,10 +66,11 @@ PROBABILITIES = ("loss", "reorder", "duplicate", "malformed", "nan", "range", "m
 
 def make_station(cfg, contract, seed: int, timing: str):
     """The simulated station on the real clock: the one place `serve` builds it."""
-    from deploy.station import TIMING, SimStation
+    from deploy.serve_station import ServedStation
+    from deploy.station import TIMING
     if timing not in TIMING:
         raise ValueError(f"--timing {timing!r}: expected one of {', '.join(TIMING)}")
-    return SimStation(cfg, contract, clock=MonotonicClock(), seed=seed, timing=TIMING[timing])
+    return ServedStation(cfg, contract, clock=MonotonicClock(), seed=seed, timing=TIMING[timing])
 
 
 # --------------------------------------------------------------------------------------------
@@ -158,8 +165,7 @@ class Server:
         self.lock = threading.Lock()             # the station: physics loop, Modbus, launcher
         self.faults = dataclasses.replace(faults, t_set=time.monotonic())
         self.rng = np.random.default_rng(seed + 1)
-        self.target = station.joints()           # [8] the merged target
-        self.applied = self.target.copy()
+        self.target = station.joints()           # [8] the newest arm and gantry targets
         self.gantry_toggle = 0
         self.seq = 0
         self.counts = collections.Counter()
@@ -171,7 +177,8 @@ class Server:
         self.trk_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.trk_out = FaultyUdp(self.trk_sock, (cell.tracker.host, cell.tracker.port), "tracker", self.rng)
         self.trk_seq, self.trk_last = 0, -math.inf
-        self.arm_targets: list = []              # (time, q [6]) of every applied EGM target (tests)
+        # (arrival time, part, target) of each new arm / gantry target (the `arrivals` command)
+        self.arrivals: collections.deque = collections.deque(maxlen=ARRIVALS_KEPT)
 
     # ------------------------------------------------------------------ physics loop
     def run(self, duration_s: float | None = None) -> None:
@@ -185,15 +192,15 @@ class Server:
             last = now
             with self.lock:
                 self.s.sync()
-                self._receive_egm(now)
+                self._receive_egm()
                 if now >= next_egm:
                     self._send_egm(now)
                     next_egm = max(next_egm + period, now - period)
                 self._send_ball(now)
-                self._apply(now)
             self.egm_out.flush(now)
             self.trk_out.flush(now)
-            time.sleep(max(0.0, min(next_egm, now + 0.001) - time.monotonic()))
+            # until the next EGM cycle or physics millisecond, or at once when a reply arrives
+            select.select([self.egm_sock], [], [], max(0.0, min(next_egm, now + 0.001) - time.monotonic()))
 
     def _lateness(self, gap: float) -> None:
         """Count loop gaps (the physics and streams paused that long)."""
@@ -202,13 +209,16 @@ class Server:
                 self.counts[f"loop_gaps_over_{ms}ms"] += 1
         self.counts["loop_max_gap_ms"] = max(self.counts["loop_max_gap_ms"], int(gap * 1000))
 
-    def _apply(self, now: float) -> None:
-        if not np.array_equal(self.target, self.applied):
-            self.s.set_target(self.target.copy(), now)
-            self.applied = self.target.copy()
+    def delivered_joints(self, now: float) -> np.ndarray:
+        """[8] the station's newest joint sample delivered by now (its joint rate, latency and
+        jitter: deploy/station.py joint_samples are (time, q, delivery time))."""
+        for t, q, due in reversed(self.s.joint_samples):
+            if due <= now:
+                return q
+        return self.s.joint_samples[0][1]
 
     def _send_egm(self, now: float) -> None:
-        f, q = self.faults, np.rad2deg(self.s.joints()[2:8])
+        f, q = self.faults, np.rad2deg(self.delivered_joints(now)[2:8])
         if self.rng.random() < f.get("egm", "nan"):
             q[self.rng.integers(6)] = np.nan
         if self.rng.random() < f.get("egm", "range"):
@@ -219,13 +229,13 @@ class Server:
         m.header.mtype = egm_pb2.EgmHeader.MSGTYPE_COMMAND if self.rng.random() < f.get("egm", "msgtype") else DATA
         m.feedBack.joints.joints.extend(q.tolist())
         m.feedBack.time.sec, m.feedBack.time.usec = int(now), int((now % 1) * 1e6)
-        m.planned.joints.joints.extend(np.rad2deg(self.applied[2:8]).tolist())
+        m.planned.joints.joints.extend(np.rad2deg(self.target[2:8]).tolist())
         motors_off = f.after("egm", "motors_off_s", now)
         m.motorState.state = egm_pb2.EgmMotorState.MOTORS_OFF if motors_off else MOTORS_ON
         m.rapidExecState.state = RAPID_RUNNING
         self.egm_out.send(m.SerializeToString(), f, now)
 
-    def _receive_egm(self, now: float) -> None:
+    def _receive_egm(self) -> None:
         while True:
             try:
                 buf = self.egm_sock.recv(65536)
@@ -235,8 +245,11 @@ class Server:
                 continue
             q = self._sensor_joints(buf)
             if q is not None:
-                self.target[2:8] = q
-                self.arm_targets.append((now, q))
+                if not np.array_equal(q, self.target[2:8]):   # the reply to every message repeats it
+                    self.target[2:8] = q
+                    t = time.monotonic()
+                    self.s.set_part_target("arm", q, t)
+                    self.arrivals.append((t, "arm", q.tolist()))
                 self.counts["egm_replies"] += 1
 
     def _sensor_joints(self, buf: bytes) -> np.ndarray | None:
@@ -256,8 +269,8 @@ class Server:
     def _send_ball(self, now: float) -> None:
         """The station's ball samples now due (sample time + tracker latency <= now)."""
         f = self.faults
-        for t, x in list(self.s.ball_samples):
-            if t <= self.trk_last or t + self.s.tracker_latency_s > now:
+        for t, x, due in list(self.s.ball_samples):
+            if t <= self.trk_last or due > now:
                 continue
             self.trk_last = t
             stamp = t + 1.0 if self.rng.random() < f.get("tracker", "future") else t
@@ -294,14 +307,18 @@ class Server:
             x = decode_int32([new[r.target_x], new[r.target_x + 1]], r) / r.counts_per_m
             y = decode_int32([new[r.target_y], new[r.target_y + 1]], r) / r.counts_per_m
             with self.lock:
-                self.target[0:2] = (x, y)
+                if not np.array_equal((x, y), self.target[0:2]):
+                    self.target[0:2] = (x, y)
+                    t = time.monotonic()
+                    self.s.set_part_target("gantry", self.target[0:2].copy(), t)
+                    self.arrivals.append((t, "gantry", [x, y]))
             self.gantry_toggle = control & NEW_SETPOINT
             self.counts["modbus_targets"] += 1
         return None
 
     def _modbus_read(self, regs, start, r, f) -> None:
         with self.lock:
-            q = self.s.joints()[0:2]
+            q = self.delivered_joints(time.monotonic())[0:2]
         status = READY | (ACK if self.gantry_toggle else 0)
         if f.after("modbus", "fault_s", time.monotonic()):
             status |= FAULT
@@ -334,13 +351,18 @@ class Server:
             return {"ok": True, "faults": self.faults.spec}
         if cmd == "stats":
             return self.stats()
-        raise ValueError(f"unknown command {cmd!r}; expected throw, finish, faults or stats")
+        if cmd == "arrivals":
+            since = float(req.get("since", -math.inf))
+            with self.lock:
+                return {"arrivals": [a for a in self.arrivals if a[0] >= since]}
+        raise ValueError(f"unknown command {cmd!r}; expected throw, finish, faults, stats or arrivals")
 
     def _finish(self, max_s: float):
         t_end = time.monotonic() + max_s
         while time.monotonic() < t_end:
             with self.lock:
                 s = self.s
+                s.fold_events()
                 over = s.pending is None and (not s.in_flight or s.events is None or s.events.done)
             if over:
                 break

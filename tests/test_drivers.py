@@ -226,3 +226,21 @@ def test_ports_in_use_and_unreachable_drive_are_one_line_errors(tmp_path):
         listen.close()
     assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
     assert f"gantry (Modbus) port {cfg.gantry.port}" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_served_arm_and_gantry_ramp_apart():
+    """serve's station: each half of a command ramps from its own arrival; the gantry's half
+    arriving later does not restart the arm's ramp (deploy/serve_station.py)."""
+    from deploy.serve_station import ServedStation
+    from deploy.station import SimClock, TIMING
+    from ttmjx.world.config import World
+    clock = SimClock()
+    s = ServedStation(World(control_hz=100), CONTRACT, clock=clock, timing=TIMING["zero"])
+    q0 = s.joints()
+    arm, gantry = q0[2:8] + 0.1, q0[0:2] + 0.05
+    s.set_part_target("arm", arm, 0.0)
+    s.set_part_target("gantry", gantry, 0.004)
+    ramp = s.ramp_s
+    assert np.allclose(s._ctrl_at(ramp)[2:8], arm) and np.allclose(s._ctrl_at(ramp)[0:2], q0[0:2] + 0.05 * (ramp - 0.004) / ramp)
+    assert np.allclose(s._ctrl_at(ramp + 0.004), np.concatenate([gantry, arm]))
+    assert np.allclose(s._ctrl_at(ramp / 2)[2:8], q0[2:8] + 0.05)

@@ -3,11 +3,13 @@ into the 8 joints in the contract's order (JOINT_NAMES: gantry_x, gantry_y, j1..
 tracker, the launcher, and `ttmjx robot run --station cell` (run_cell).
 
 Timestamps: each part keeps its own (arm: receipt of the EGM message, gantry: receipt of the
-Modbus reply; both in `parts()`). read() returns both parts' newest values stamped with the
-newer stamp (the arm's, at 250 Hz: the gantry's value is then up to one poll older, less than
-the runner's jump tolerance at the gantry's speed). So that one fresh part never hides a silent
-one, a part whose newest sample is older than its stale_s freezes read() at the last sample it
-returned: the runner sees that sample go stale (joint_stale, HOLD).
+Modbus reply; both in `parts()`). read() returns one sample at the arm's stamp (the newest, at
+250 Hz): the arm's joints, and the gantry's line through its two newest readings at that time
+(ModbusGantry.read_at, followed at most one poll period past the newest), so the 100 Hz gantry does not lag its
+stamp by up to a poll (a 10 ms lag the policy, trained on feedback sampled with the arm, reads
+as a slower gantry). So that one fresh part never hides a silent one, a part whose newest
+sample is older than its stale_s freezes read() at the last sample it returned: the runner
+sees that sample go stale (joint_stale, HOLD).
 """
 from __future__ import annotations
 
@@ -51,8 +53,8 @@ class CellRobot:
         if now - g[0] > self.stale_s[0] or now - a[0] > self.stale_s[1]:
             return self._last[0], self._last[1].copy()
         q = np.empty(8)
-        q[GANTRY], q[ARM] = g[1], a[1]
-        self._last = (max(g[0], a[0]), q)
+        q[GANTRY], q[ARM] = self.gantry.read_at(a[0]), a[1]
+        self._last = (a[0], q)
         return self._last[0], q.copy()
 
     def send(self, q: np.ndarray) -> None:

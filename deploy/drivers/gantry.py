@@ -1,10 +1,11 @@
 """The Festo two-axis gantry over Modbus TCP, through pymodbus's ModbusTcpClient.
 
 The drive is a Modbus TCP server (this computer connects to it). A background thread, never the
-control tick, does every transaction: at up to poll_hz it writes the newest position target (if
-one is pending) with the fixed positioning velocity and a toggled new-setpoint bit, then reads
-the actual positions and the status word; each reading is stamped with the runner's clock at
-receipt. A slow or lost transaction only delays the thread: the runner keeps ticking and sees
+control tick, does every transaction: it writes each new position target as soon as the runner
+sets it (with the fixed positioning velocity and a toggled new-setpoint bit; a target leaves
+within a transaction, not up to a poll period late), and poll_hz times a second, on a schedule
+of its own, reads the actual positions and the status word; each reading is stamped with the
+runner's clock at receipt. The drive sees at most control_hz writes and poll_hz reads a second. A slow or lost transaction only delays the thread: the runner keeps ticking and sees
 the gantry's newest sample go stale (joint_stale, HOLD) if it lasts longer than stale_s.
 
 The register map (config.Registers, one block of holding registers):
@@ -25,6 +26,7 @@ those addresses in the cell config. `ttmjx robot serve` implements exactly this 
 """
 from __future__ import annotations
 
+import collections
 import threading
 import time
 
@@ -39,6 +41,7 @@ from deploy.hardware import Clock
 ENABLE, NEW_SETPOINT = 1, 2                 # control bits
 READY, FAULT, ACK = 1, 2, 4                 # status bits
 INT32 = ModbusTcpClient.DATATYPE.INT32
+HISTORY = 32                                # readings kept for read_at (0.32 s at 100 Hz)
 
 
 def encode_int32(value: int, regs: Registers) -> list[int]:
@@ -69,11 +72,13 @@ class ModbusGantry:
                              f"(unreachable host, or nothing listening)")
         self._lock = threading.Lock()
         self.sample: tuple[float, np.ndarray] | None = None      # (receipt time, q [2] m)
+        self.history: collections.deque = collections.deque(maxlen=HISTORY)   # recent samples
         self.latched: str | None = None
         self._pending: np.ndarray | None = None
         self._toggle = 0
         self.reads = self.writes = self.errors = 0
         self._stop = threading.Event()
+        self._wake = threading.Event()             # a new target (or close)
         self._thread = threading.Thread(target=self._loop, name="gantry", daemon=True)
 
     def start(self) -> "ModbusGantry":
@@ -88,25 +93,50 @@ class ModbusGantry:
             t, q = self.sample
             return t, (np.full(2, np.nan) if self.latched else q.copy())
 
+    def read_at(self, t: float) -> np.ndarray | None:
+        """q [2] m at time t from the recent readings (HISTORY): interpolated between the two
+        around t, or the line through the two newest followed at most one poll period past the
+        newest (so a 100 Hz reading joins a 250 Hz arm sample without lagging it by up to a
+        poll); the oldest kept reading before it. The same t gives the same value."""
+        with self._lock:
+            if not self.history:
+                return None
+            if self.latched:
+                return np.full(2, np.nan)
+            ts = np.array([h[0] for h in self.history])
+            qs = np.array([h[1] for h in self.history])
+        if len(ts) < 2 or t <= ts[-1]:
+            return np.array([np.interp(t, ts, qs[:, i]) for i in range(2)])
+        dt = min(t - ts[-1], 1.0 / self.cfg.poll_hz)
+        return qs[-1] + (qs[-1] - qs[-2]) * (dt / max(ts[-1] - ts[-2], 1e-9))
+
     def set_target(self, q: np.ndarray) -> None:
-        """New position target q [2] m: written by the thread at its next transaction."""
+        """New position target q [2] m: the thread writes it at once (its next transaction)."""
         q = np.asarray(q, np.float64)
         for v in q:
             to_counts(v, self.regs)
         with self._lock:
             self._pending = q.copy()
+        self._wake.set()
 
     # ------------------------------------------------------------------ the polling thread
     def _loop(self) -> None:
         period, nxt = 1.0 / self.cfg.poll_hz, time.monotonic()
         while not self._stop.is_set():
-            try:
-                self._write_pending()
+            if time.monotonic() >= nxt:            # a read is due (and a pending target first)
+                nxt = max(nxt + period, time.monotonic())
+                self._cycle(read=True)
+            elif self._wake.wait(max(0.0, nxt - time.monotonic())):
+                self._wake.clear()                  # a new target: written now, not at the read
+                self._cycle(read=False)
+
+    def _cycle(self, read: bool) -> None:
+        try:
+            self._write_pending()
+            if read:
                 self._poll()
-            except (ModbusException, OSError, ValueError) as e:
-                self._error(e)
-            nxt = max(nxt + period, time.monotonic())
-            self._stop.wait(max(0.0, nxt - time.monotonic()))
+        except (ModbusException, OSError, ValueError) as e:
+            self._error(e)
 
     def _write_pending(self) -> None:
         with self._lock:
@@ -146,6 +176,7 @@ class ModbusGantry:
             self.faults.add(now, "gantry", latched, f"status word {status:#06x}")
         with self._lock:
             self.sample = (now, q)
+            self.history.append(self.sample)
             self.latched = self.latched or latched
         self.reads += 1
 
@@ -159,6 +190,7 @@ class ModbusGantry:
 
     def close(self) -> None:
         self._stop.set()
+        self._wake.set()
         if self._thread.is_alive():
             self._thread.join(timeout=2.0)
         self.client.close()
