@@ -6,7 +6,8 @@
     python -m deploy --policy DIR --station sim --goals five --repeat 5   (the five-goal protocol)
 
 --station sim: the simulated station (deploy/station.py, MuJoCo C physics and the thrower);
---station fake / --fake: fake kinematics (deploy/fakes.py). There is no hardware driver yet.
+--station fake / --fake: fake kinematics (deploy/fakes.py); --station cell: the real cell's
+drivers (deploy/drivers/, `pip install -e '.[robot]'`) with `ttmjx robot run --config cell.toml`.
 It prints one JSON object (non-finite numbers as null).
 """
 from __future__ import annotations
@@ -22,7 +23,7 @@ from deploy.hardware import MonotonicClock
 from deploy.runner import Runner, RunnerConfig
 from ttmjx.world.files import json_safe
 
-STATIONS = ("sim", "fake")
+STATIONS = ("sim", "fake", "cell")
 
 
 # --------------------------------------------------------------------------------------------
@@ -35,7 +36,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--repeat", type=int, default=1, help="episodes per goal (in a row)")
     p.add_argument("--out", default=None, help="directory for the episode logs")
     p.add_argument("--policy", default=None, help="an export directory (deploy/export.py)")
-    p.add_argument("--station", choices=STATIONS, default=None, help="sim (MuJoCo) or fake")
+    p.add_argument("--station", choices=STATIONS, default=None, help="sim (MuJoCo), fake, or cell (drivers)")
+    p.add_argument("--config", default=None, help="--station cell: the cell config (TOML)")
     p.add_argument("--rate", type=float, default=20.0, help="--fake without --policy: control rate, Hz")
     p.add_argument("--frame-stack", type=int, default=8, help="--fake without --policy")
     p.add_argument("--stale-ms", type=float, default=100.0, help="joint/ball data older than this -> hold")
@@ -65,6 +67,19 @@ def run_fake(goals, out, policy_dir, rate, frame_stack, config, realtime) -> dic
             "ends": [e.meta["end"] for e in episodes], "out": out}
 
 
+def run_cell_station(policy_dir, goals, config_path, out, config) -> dict:
+    """--station cell: the export played on the cell of config_path (deploy/drivers/cell.py)."""
+    if not policy_dir:
+        raise ValueError("--station cell needs --policy DIR (an export)")
+    if not config_path:
+        raise ValueError("--station cell needs --config FILE (a cell config, deploy/drivers/cell.example.toml)")
+    try:
+        from deploy.drivers.cell import run_cell
+    except ImportError as e:
+        raise ValueError(f"--station cell needs the robot extra (pip install -e '.[robot]'): {e}") from None
+    return run_cell(policy_dir, goals, config_path, out, runner_config=config)
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     station = "fake" if args.fake else args.station
@@ -72,9 +87,11 @@ def main(argv=None) -> int:
         goals = session_goals(args.goals, args.repeat, args.seed)
         config = RunnerConfig(stale_s=args.stale_ms / 1000.0)
         if station is None:
-            raise ValueError("no robot or tracker driver is installed yet; use --station sim "
-                             "(simulated station) or --fake (dry run)")
-        if station == "sim":
+            raise ValueError("no station given; use --station cell --config cell.toml (the drivers), "
+                             "--station sim (simulated station) or --fake (dry run)")
+        if station == "cell":
+            out = run_cell_station(args.policy, goals, args.config, args.out, config)
+        elif station == "sim":
             if not args.policy:
                 raise ValueError("--station sim needs --policy DIR (an export)")
             from deploy.station import run_sim

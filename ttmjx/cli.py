@@ -282,7 +282,7 @@ class RobotRunArgs(Report):
     policy: str
     """An export directory (ttmjx export --out)."""
     station: Literal[STATIONS]
-    """sim: MuJoCo C physics and the thrower; fake: simple kinematics."""
+    """sim: MuJoCo C physics and the thrower; fake: simple kinematics; cell: the drivers (--config)."""
     goals: str
     """'x,y;x,y', a goal file (.json/.npy/.csv/.txt), 'five' (goals A-E) or 'uniform'."""
     n: int = 1
@@ -325,6 +325,33 @@ class RobotSweepArgs(Report):
     """Seed of the goals and throws."""
     timing: Literal["nominal", "zero"] = "nominal"
     """The station's timing the latency is added to."""
+    config: str | None = None
+    """cell: the cell config (TOML: EGM, gantry Modbus, tracker, launcher; docs/ROBOT.md)."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class RobotServeArgs(Report):
+    """Serve the simulated station over the cell's protocols (EGM, Modbus TCP, tracker UDP,
+    launcher) in real time, for `ttmjx robot run --station cell` (docs/ROBOT.md)."""
+    BOUNDS: ClassVar[dict] = {"egm_hz": (1.0, 1000.0), "duration_s": (0.0, None)}
+    config: str
+    """The cell config (TOML) the runner uses: where to send and listen."""
+    policy: str | None = None
+    """An export: its training world and control rate; None: the default World at --control-hz."""
+    control_hz: Literal[CONTROL_RATES] | None = None
+    """Without --policy: the runner's control rate (the station ramps each target over one period)."""
+    seed: int = 0
+    """Seed of the throws (as `robot run --station sim --seed`)."""
+    distribution: Literal[THROW_DISTRIBUTIONS] | None = None
+    """Throws; None: the export's training world."""
+    timing: Literal["nominal", "zero"] = "nominal"
+    """Sensor timing of the station (the tracker's rate and latency)."""
+    faults: str = ""
+    """Injected faults, e.g. 'egm.loss=0.05,modbus.delay_ms=10' (deploy/serve.py FAULT_KINDS)."""
+    egm_hz: float = 250.0
+    """EGM cycle rate of the simulated controller."""
+    duration_s: float | None = None
+    """Stop after this many seconds; None: until interrupted."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -503,7 +530,10 @@ def robot_run(a: RobotRunArgs) -> None:
     from deploy.runner import RunnerConfig
     goals = session_goals(a.goals, a.n, a.seed)
     config = RunnerConfig(stale_s=a.stale_ms / 1000.0)
-    if a.station == "sim":
+    if a.station == "cell":
+        from deploy.cli import run_cell_station
+        out = run_cell_station(a.policy, goals, a.config, a.out, config)
+    elif a.station == "sim":
         from deploy.station import run_sim
         out = run_sim(a.policy, goals, a.out, seed=a.seed, distribution=a.distribution,
                       realtime=a.realtime, charge_compute=a.charge_compute, config=config, timing=a.timing)
@@ -525,6 +555,27 @@ def robot_sweep(a: RobotSweepArgs) -> None:
     goals = session_goals("uniform", a.n, a.seed)
     out = latency_sweep(a.policy, goals, a.out, np.linspace(0.0, a.max_ms, a.points), a.seed, a.timing)
     report(a, out, sweep_table(out) + f"\nwrote {a.out}/sweep.json and sweep.png")
+
+
+def robot_serve(a: RobotServeArgs) -> None:
+    from deploy.contract import contract_from_world
+    from deploy.drivers.config import load_cell_config
+    from deploy.serve import check_ports, make_station, parse_faults, serve
+    cell = load_cell_config(a.config)
+    faults = parse_faults(a.faults)
+    check_ports(cell)                  # before the station's slow start
+    if a.policy is not None:
+        from deploy.export import export_world, load_export
+        policy, contract = load_export(a.policy)
+        cfg = export_world(policy.contract_doc)
+    else:
+        cfg = World() if a.control_hz is None else World(control_hz=a.control_hz)
+        contract = contract_from_world(cfg, cfg.control_hz)
+    if a.distribution:
+        cfg = cfg.with_throws(a.distribution)
+    station = make_station(cfg, contract, a.seed, a.timing)
+    out = serve(cell, station, faults, egm_hz=a.egm_hz, seed=a.seed, duration_s=a.duration_s)
+    report(a, out, table({k: json.dumps(v) for k, v in out.items()}))
 
 
 def robot_bench(a: RobotBenchArgs) -> None:
@@ -562,6 +613,7 @@ COMMANDS: dict[str, Command] = {
     "export": Command(ExportArgs, export, "safetensors weights + contract + golden self-test + ONNX graph for the robot runner"),
     "robot run": Command(RobotRunArgs, robot_run, "the robot runner: play an exported policy on a station"),
     "robot sweep": Command(RobotSweepArgs, robot_sweep, "strict success against added ball and command latency"),
+    "robot serve": Command(RobotServeArgs, robot_serve, "serve the simulated station over EGM, Modbus TCP and UDP (rehearsal)"),
     "robot bench": Command(RobotBenchArgs, robot_bench, "numpy or ONNX policy step latency on one CPU core"),
 }
 

@@ -1,0 +1,246 @@
+"""The cell's drivers (deploy/drivers/) against `ttmjx robot serve` over real loopback sockets:
+a whole session plays through them, and each injected fault ends as it must (a logged driver
+fault, HOLD where the data cannot be trusted), never in a traceback or a command on bad data.
+
+One server process for the module (the simulated station on the real clock, faults switched
+through its launcher between sessions); the policy is the scripted FollowBallPolicy (numpy)."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("abb_robot_client")
+pytest.importorskip("pymodbus")
+
+from deploy.contract import Contract                                   # noqa: E402
+from deploy.drivers import config as cellconfig                        # noqa: E402
+from deploy.drivers.cell import Launcher, run_cell                     # noqa: E402
+from deploy.drivers.tracker import WIRE, pack_sample, unpack_sample    # noqa: E402
+from deploy.episode_log import load_episode                            # noqa: E402
+from deploy.fakes import FollowBallPolicy                              # noqa: E402
+from deploy.runner import RunnerConfig                                 # noqa: E402
+from deploy.serve import parse_faults                                  # noqa: E402
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+CONTRACT = Contract(control_hz=20.0)
+GOALS = [[0.7, 0.3], [0.5, -0.4]]
+QUICK = RunnerConfig(arm_timeout_s=2.0, home_timeout_s=5.0)
+
+
+def free_port(kind) -> int:
+    s = socket.socket(socket.AF_INET, kind)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+def cell_toml(path) -> cellconfig.CellConfig:
+    cfg = cellconfig.CellConfig(
+        egm=cellconfig.EgmConfig(port=free_port(socket.SOCK_DGRAM)),
+        gantry=cellconfig.GantryConfig(port=free_port(socket.SOCK_STREAM)),
+        tracker=cellconfig.TrackerConfig(port=free_port(socket.SOCK_DGRAM)),
+        launcher=cellconfig.LauncherConfig(port=free_port(socket.SOCK_STREAM)))
+    path.write_text(cellconfig.to_toml(cfg))
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    """(config path, CellConfig, launcher) of a running `ttmjx robot serve`."""
+    tmp = tmp_path_factory.mktemp("cell")
+    path = tmp / "cell.toml"
+    cfg = cell_toml(path)
+    env = {**os.environ, "PYTHONPATH": ROOT, "JAX_PLATFORMS": "cpu"}
+    proc = subprocess.Popen([sys.executable, "-m", "ttmjx.cli", "robot", "serve", "--config", str(path),
+                             "--control-hz", "20", "--seed", "3", "--json"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)
+    try:
+        line = proc.stdout.readline()           # the server's ready line
+        assert '"ready": true' in line, proc.stderr.read()
+        launcher = Launcher(cfg.launcher)
+        yield str(path), cfg, launcher, tmp
+        launcher.close()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+def session(served, name, faults="", goals=GOALS, config=QUICK):
+    """run_cell (what `ttmjx robot run --station cell` runs) with faults set on the server;
+    returns (summary, episodes as saved, server stats)."""
+    path, _, launcher, tmp = served
+    launcher.call("faults", spec=faults)
+    out = tmp / name
+    summary = run_cell(None, goals, path, str(out), runner_config=config,
+                       policy=FollowBallPolicy(CONTRACT), contract=CONTRACT)
+    stats = launcher.call("stats")
+    launcher.call("faults", spec="")
+    eps = [load_episode(str(out), f"episode_{i:04d}") for i in range(summary["episodes"])]
+    return summary, eps, stats
+
+
+def latched(summary) -> set:
+    from deploy.safety import LATCHING, FAULTS
+    return {k for k in summary["faults"] if k in FAULTS and FAULTS[k] & LATCHING}
+
+
+def test_a_session_plays_through_the_drivers(served):
+    summary, eps, stats = session(served, "clean")
+    assert summary["episodes"] == len(GOALS) and summary["mode"] == "idle", (summary["ends"], summary["faults"], summary["driver_faults"], stats)
+    assert [e.meta["end"] for e in eps] == ["done"] * len(GOALS)
+    assert all(e.meta["events_detected"] and e.meta["station"] == "cell" for e in eps)
+    assert all(e.extras["executed"].sum() >= 0.8 * CONTRACT.horizon for e in eps)
+    assert summary["egm"]["replies"] > 100 and summary["gantry"]["writes"] > 10
+    assert summary["tracker"]["received"] > 50 and not latched(summary)
+    # every command reached the station: the arm's last target is the runner's last command
+    assert stats["counts"]["egm_replies"] > 100 and stats["counts"]["modbus_targets"] > 10
+    assert stats["counts"].get("egm_bad_replies", 0) == 0
+
+
+def test_lossy_networks_are_logged_and_survived(served):
+    faults = ("egm.loss=0.05,egm.duplicate=0.05,egm.reorder=0.05,egm.malformed=0.02,"
+              "tracker.loss=0.05,tracker.duplicate=0.05,tracker.reorder=0.05,tracker.malformed=0.05,"
+              "modbus.delay_ms=10")
+    # stale_s 0.25: this test is about the wire, not about stalls of a loaded CI machine
+    summary, eps, stats = session(served, "lossy", faults, goals=GOALS[:1],
+                                  config=dataclasses.replace(QUICK, stale_s=0.25))
+    assert [e.meta["end"] for e in eps] == ["done"], (summary["driver_faults"], summary["faults"], stats)
+    found = set(summary["driver_faults"])
+    assert {"egm_seq_gap", "egm_seq_old", "egm_malformed", "tracker_malformed"} <= found, found
+    assert stats["egm"]["lost"] > 0 and stats["tracker"]["reordered"] > 0
+    assert eps[0].meta["driver_faults"], "the episode log carries its window's driver faults"
+
+
+@pytest.mark.parametrize("faults,runner_fault,driver_fault", [
+    ("egm.nan=1", "joint_nonfinite", None),
+    ("egm.range=1", "joint_out_of_range", None),
+    ("egm.motors_off_s=0", "joint_nonfinite", "egm_motors_off"),
+    ("modbus.fault_s=0", "joint_nonfinite", "gantry_drive_fault"),
+])
+def test_bad_feedback_holds_and_sends_nothing_from_it(served, faults, runner_fault, driver_fault):
+    """From the first message the data are bad: HOLD before any episode, the reason logged,
+    and no reply carries a target computed from the bad data."""
+    path, _, launcher, _ = served
+    before = launcher.call("stats")["counts"].get("egm_bad_replies", 0)
+    summary, eps, stats = session(served, "bad_" + faults.split("=")[0], faults, goals=GOALS[:1])
+    assert summary["mode"] == "hold" and runner_fault in summary["faults"], summary
+    assert driver_fault is None or driver_fault in summary["driver_faults"], summary
+    assert stats["counts"].get("egm_bad_replies", 0) == before
+
+
+@pytest.mark.parametrize("faults,driver_fault", [("egm.msgtype=1", "egm_msgtype"),
+                                                ("egm.malformed=1", "egm_malformed")])
+def test_a_controller_sending_only_bad_messages_is_a_clear_error(served, faults, driver_fault):
+    """Nothing valid ever arrives: the cell does not start (one line naming the silent part and
+    the driver faults seen); no reply was sent."""
+    path, _, launcher, _ = served
+    with pytest.raises(ValueError, match=f"no feedback from arm \\(EGM\\).*{driver_fault}") as e:
+        session(served, "only_" + faults.split("=")[0], faults, goals=GOALS[:1])
+    launcher.call("faults", spec="")
+    assert e.value.args[0].count("\n") == 0
+
+
+@pytest.mark.parametrize("faults,driver_fault", [
+    ("egm.stop_s=0.9", "egm_stream_stopped"),
+    ("modbus.stop_s=0.9", "gantry_transaction"),
+])
+def test_a_stream_that_stops_mid_session_holds(served, faults, driver_fault):
+    summary, eps, _ = session(served, "stop_" + faults.split(".")[0], faults, goals=GOALS[:1])
+    assert summary["mode"] == "hold" and "joint_stale" in summary["faults"], summary
+    assert driver_fault in summary["driver_faults"], summary
+    for e in eps:                               # an episode that ran ends in the hold
+        assert e.meta["end"] == "hold: joint_stale"
+        sent = np.flatnonzero(np.isfinite(e.extras["t_sent"]))
+        stale = np.flatnonzero(e.extras["faults"] & 4)   # joint_stale
+        assert len(stale) and (not len(sent) or sent.max() < stale.min())
+
+
+def test_tracker_samples_from_the_future_are_dropped(served):
+    summary, eps, _ = session(served, "future", "tracker.future=1", goals=GOALS[:1])
+    assert summary["episodes"] == 0 and summary["faults"].get("ball_dropped_samples", 0) > 10, summary
+    assert summary["mode"] == "idle"            # no ball came: disarmed, not a fault
+
+
+# ------------------------------------------------------------------------ without a server
+def test_tracker_wire_format():
+    buf = pack_sample(2 ** 32 + 5, 12.5, [0.1, -0.2, 0.3])
+    assert len(buf) == WIRE.size == 36
+    seq, t, xyz = unpack_sample(buf)
+    assert seq == 5 and t == 12.5 and np.allclose(xyz, [0.1, -0.2, 0.3])
+    with pytest.raises(ValueError, match="35 bytes, expected 36"):
+        unpack_sample(buf[:-1])
+    with pytest.raises(ValueError, match="non-finite"):
+        unpack_sample(pack_sample(1, float("nan"), [0, 0, 0]))
+
+
+def test_bad_fault_specs_and_configs_name_the_value(tmp_path):
+    assert parse_faults("egm.loss=0.05, modbus.delay_ms=10").spec == {"egm": {"loss": 0.05}, "modbus": {"delay_ms": 10.0}}
+    for spec, match in [("egm.loss=2", "egm.loss=2: expected a probability"),
+                        ("gps.loss=0.1", "'gps.loss=0.1'"), ("egm.loss=x", "expected a number"),
+                        ("tracker.nan=1", "'tracker.nan=1'")]:
+        with pytest.raises(ValueError, match=match):
+            parse_faults(spec)
+    for text, match in [("[egm]\nport = 70000\n", "port = 70000"), ("[egm]\nprt = 1\n", "egm].prt: unknown key"),
+                        ("[gantry.registers]\nword_order = 'middle'\n", "word_order = 'middle'"),
+                        ("[robot]\n", r"unknown section \[robot\]"), ("[egm\n", "not valid TOML")]:
+        (tmp_path / "c.toml").write_text(text)
+        with pytest.raises(ValueError, match=match):
+            cellconfig.load_cell_config(str(tmp_path / "c.toml"))
+
+
+def test_ports_in_use_and_unreachable_drive_are_one_line_errors(tmp_path):
+    path = tmp_path / "cell.toml"
+    cfg = cell_toml(path)
+    cfg = dataclasses.replace(cfg, launcher=None)
+    path.write_text(cellconfig.to_toml(cfg))
+    taken = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    taken.bind(("0.0.0.0", cfg.egm.port))
+    try:
+        with pytest.raises(ValueError, match=f"egm port {cfg.egm.port} is already in use"):
+            run_cell(None, GOALS, str(path), policy=FollowBallPolicy(CONTRACT), contract=CONTRACT)
+    finally:
+        taken.close()
+    with pytest.raises(ValueError, match=f"cannot connect to the Modbus TCP drive at 127.0.0.1:{cfg.gantry.port}"):
+        run_cell(None, GOALS, str(path), policy=FollowBallPolicy(CONTRACT), contract=CONTRACT)
+    env = {**os.environ, "PYTHONPATH": ROOT, "JAX_PLATFORMS": "cpu"}
+    listen = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    listen.bind(("127.0.0.1", cfg.gantry.port))
+    listen.listen()
+    try:
+        r = subprocess.run([sys.executable, "-m", "ttmjx.cli", "robot", "serve", "--config", str(path)],
+                           capture_output=True, text=True, env=env, timeout=120)
+    finally:
+        listen.close()
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert f"gantry (Modbus) port {cfg.gantry.port}" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_served_arm_and_gantry_ramp_apart():
+    """serve's station: each half of a command ramps from its own arrival; the gantry's half
+    arriving later does not restart the arm's ramp (deploy/serve_station.py)."""
+    from deploy.serve_station import ServedStation
+    from deploy.station import SimClock, TIMING
+    from ttmjx.world.config import World
+    clock = SimClock()
+    s = ServedStation(World(control_hz=100), CONTRACT, clock=clock, timing=TIMING["zero"])
+    q0 = s.joints()
+    arm, gantry = q0[2:8] + 0.1, q0[0:2] + 0.05
+    s.set_part_target("arm", arm, 0.0)
+    s.set_part_target("gantry", gantry, 0.004)
+    ramp = s.ramp_s
+    assert np.allclose(s._ctrl_at(ramp)[2:8], arm) and np.allclose(s._ctrl_at(ramp)[0:2], q0[0:2] + 0.05 * (ramp - 0.004) / ramp)
+    assert np.allclose(s._ctrl_at(ramp + 0.004), np.concatenate([gantry, arm]))
+    assert np.allclose(s._ctrl_at(ramp / 2)[2:8], q0[2:8] + 0.05)
