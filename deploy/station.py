@@ -58,6 +58,8 @@ from ttmjx.world import env, files, record, scene
 from ttmjx.world.config import TIMING_PROFILES, Timing, World
 from ttmjx.world.goals import goal_metrics
 
+# The robot's two controllers, in joint order: the gantry (Modbus) and the arm (EGM).
+PARTS = {"gantry": slice(0, 2), "arm": slice(2, 8)}
 # Ball parked out of sight between throws (no contacts, the tracker reports nothing).
 PARK = np.array([0.0, 0.0, -5.0])
 # Physics steps folded into the events per compiled call (shorter runs are padded).
@@ -294,9 +296,10 @@ class SimStation:
         q0 = np.asarray(q0, np.float64)
         self.d.qpos[self.ids.robot_qpos] = q0
         self.d.ctrl[:] = q0
-        # Commands as ramps (start time, from, to), oldest first; a command starts its ramp
-        # action_delay_s after it was sent.
-        self._ramps = collections.deque([(-math.inf, q0.copy(), q0.copy())], maxlen=64)
+        # Commands as ramps (start time, from, to) per part (PARTS), oldest first; a command
+        # starts its ramp action_delay_s after it was sent.
+        self._ramps = {part: collections.deque([(-math.inf, q0[p].copy(), q0[p].copy())], maxlen=64)
+                       for part, p in PARTS.items()}
         self._park()
         mujoco.mj_forward(self.m, self.d)
         return q0
@@ -323,19 +326,33 @@ class SimStation:
         bq, bv = self.ids.ball_qpos, self.ids.ball_qvel
         return np.concatenate([self.d.qpos[bq:bq + 3], self.d.qvel[bv:bv + 3]])
 
-    def set_target(self, q: np.ndarray, now: float) -> None:
-        """A command sent at `now`: its ramp starts action_delay_s later, from where the commands
-        before it have the target then."""
+    def set_target(self, q: np.ndarray, now: float, part: str | None = None) -> None:
+        """A command sent at `now` (all 8 joints, or `part` of PARTS alone: the arm and the
+        gantry are separate controllers): each part's ramp starts action_delay_s later, from
+        where that part's earlier commands have its target then."""
         start = now + self.action_delay_s
-        self._ramps.append((start, self._ctrl_at(start), np.clip(q, self.cfg.robot.lower, self.cfg.robot.upper)))
+        q = np.asarray(q, np.float64)
+        for name in PARTS if part is None else (part,):
+            p = PARTS[name]
+            q_p = q[p] if part is None else q
+            lo, hi = np.asarray(self.cfg.robot.lower)[p], np.asarray(self.cfg.robot.upper)[p]
+            self._ramps[name].append((start, self._part_at(name, start), np.clip(q_p, lo, hi)))
 
-    def _ctrl_at(self, t: float) -> np.ndarray:
-        """[8] the target at time t: the newest ramp started by then."""
-        for t0, q_from, q_to in reversed(self._ramps):
+    def _part_at(self, part: str, t: float) -> np.ndarray:
+        """The target of one part at time t: its newest ramp started by then."""
+        for t0, q_from, q_to in reversed(self._ramps[part]):
             if t0 <= t + 1e-12:
                 break
         w = 1.0 if self.ramp_s <= 0 else float(np.clip((t - t0) / self.ramp_s, 0.0, 1.0))
         return q_from + w * (q_to - q_from)
+
+    def _ctrl_at(self, t: float) -> np.ndarray:
+        """[8] the target at time t."""
+        return np.concatenate([self._part_at(name, t) for name in PARTS])
+
+    def part_targets(self) -> dict:
+        """{part: its newest target} (what the controllers were last told)."""
+        return {name: r[-1][2].copy() for name, r in self._ramps.items()}
 
     def _delivery(self, t: float, latency: float) -> float | None:
         """When a sample taken at t is delivered (latency + jitter), None if it is dropped."""
