@@ -132,7 +132,7 @@ def _mjx_runner(physics):
 
     def one(qpos, qvel):
         def body(c, _):
-            qpos, qvel, ball, paddle = physics.step(*c, home, home)
+            qpos, qvel, ball, paddle, _ = physics.step(*c, home, home)
             return (qpos, qvel), (ball, paddle)
         (qpos, qvel), (ball, paddle) = jax.lax.scan(body, (qpos, qvel), None, length=MJX_CHUNK)
         return qpos, qvel, ball.reshape(-1, 6), paddle.reshape(-1, 3)
@@ -171,7 +171,7 @@ def ball_trajectories(physics, qpos, qvel, n_control: int) -> tuple[np.ndarray, 
     home = np.tile(np.asarray(physics.cfg.robot.home, np.float64), (len(qpos), 1))
     balls, paddles = [], []
     for _ in range(n_control):  # MuJoCo C: batched steps through mujoco.rollout
-        qpos, qvel, ball, paddle = physics.step(qpos, qvel, home, home)
+        qpos, qvel, ball, paddle, _ = physics.step(qpos, qvel, home, home)
         balls.append(ball), paddles.append(paddle)
     return np.concatenate(balls, 1), np.concatenate(paddles, 1)
 
