@@ -41,8 +41,9 @@ def tiny(demo_dir, run_dir, **kw):
     tests/test_trainer.py RECORDED_PRACTICE)."""
     from training import runconfig
     base = runconfig.tiny()
-    kw.setdefault("train", dataclasses.replace(base.train, practice_goal_margin=0.0, practice_keep="near_half"))
-    return dataclasses.replace(base, demo_dir=demo_dir, run_dir=str(run_dir), **kw)
+    kw.setdefault("train", dataclasses.replace(base.train, practice_goal_margin=0.0, practice_keep="near_half",
+                                               action_noise_form="integrating"))
+    return dataclasses.replace(base, demo_dir=demo_dir, demo_source="oracle", run_dir=str(run_dir), **kw)
 
 
 def rows(run_dir):

@@ -355,7 +355,8 @@ def test_kill_9_at_random_moments_then_the_same_command_resumes_to_the_same_resu
     full_dir, _ = trained
     run_dir = tmp_path / "killed"
     cmd = [sys.executable, "-m", "ttmjx.cli", "train", "--preset", "tiny", "--run-dir", str(run_dir),
-           "--demo-dir", demo_dir, "--json"]
+           "--demo-dir", demo_dir, "--demo-source", "oracle", "--json",
+           *(f"--train.{k.replace('_', '-')}={v}" for k, v in RECORDED_PRACTICE.items())]   # the fixture's config
     rng = np.random.default_rng(0)
     for _ in range(3):
         p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
