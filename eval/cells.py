@@ -2,9 +2,9 @@
 to a small JSON result (final metrics, the learning curve, the landings of the final evaluation,
 the wall time and the resolved configuration).
 
-The seam for other tables (`ttmjx ablate`, a future `ttmjx baseline METHOD`): a `Trainer` is any
+The seam for other tables (`ttmjx ablate`, `ttmjx baseline METHOD`): a `Trainer` is any
 function (config, progress) -> Outcome. `goalseye` is the one for this project's trainer;
-another method (PPO through brax, say) supplies its own and reuses everything else here:
+another method (brax's PPO, SAC, ES: eval/baselines.py rl_trainer) supplies its own and reuses everything else here:
 skipping finished cells, resuming, atomic results, the report (eval/tables.py).
 """
 from __future__ import annotations

@@ -82,6 +82,11 @@ def cases():
         ("ablate noise --scale tiny --plan", "--cells", ["d10", "20"]),
         ("ablate demos --scale tiny", "--out", ["{file}"]),
         ("ablate demos --scale tiny --out {empty}", "--report", ["--report"]),     # nothing finished yet
+        ("baseline", "", ["nope", "ppo,qtopt", ""]), ("baseline ppo --scale tiny", "--seeds", ["0", "abc"]),
+        ("baseline ppo", "--scale", ["huge"]), ("baseline ppo --scale tiny", "--trajectories", ["0", "-5"]),
+        ("baseline es --scale tiny", "--trajectories", ["1"]), ("baseline ppo --scale full", "--trajectories", ["100"]),
+        ("baseline ppo --scale tiny", "--reward.goal", ["nan", "-1"]), ("baseline ppo --scale tiny", "--reward.hit", ["-0.5"]),
+        ("baseline ppo --scale tiny", "--reward.goal-scale", ["0", "nan"]), ("baseline ppo --scale tiny", "--out", ["{file}"]),
         ("robot bench", "--hidden", ["0"]), ("robot bench", "--layers", ["0"]), ("robot bench", "--members", ["0"]),
         ("robot bench", "--steps", ["0"]), ("robot bench", "--threads", ["0"]), ("robot bench", "--kind", ["gru"]),
         ("robot bench", "--engine", ["torch"]), ("robot bench", "--obs-size", ["14"]), ("robot bench", "--frame-stack", ["0"]),

@@ -22,6 +22,7 @@ import tyro
 
 from deploy.cli import STATIONS
 from eval.ablate import ABLATION_NAMES, SCALE_NAMES
+from training.baselines.config import RewardConfig
 from training.runconfig import PRESET_NAMES, RunConfig, preset
 from ttmjx.world.config import CONTROL_RATES, THROW_DISTRIBUTIONS, World
 from ttmjx.world.files import json_safe
@@ -250,6 +251,29 @@ class AblateArgs(Report):
     """Only (re)build the table, curves, landing maps and summary from the finished cells."""
     plan: Flag = False
     """List the cells (index, name, finished / partial / to do) and exit."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class BaselineArgs(Report):
+    """The paper's Table I on this world: RL baselines through brax (ppo, sac, es), GCSL, LFP and
+    GoalsEye at one trajectory budget, each (method, seed) a cell as in `ttmjx ablate`: a markdown
+    table (mean +- 95% interval over seeds), learning curves, landing maps, JSON per cell. The same
+    command skips finished cells (an RL cell cut short is redone; GoalsEye cells resume)."""
+    BOUNDS: ClassVar[dict] = {"seeds": (1, 1000), "trajectories": (1, None)}
+    method: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="METHOD")]
+    """ppo, sac, es, gcsl, lfp or goalseye; several comma-separated, or all."""
+    trajectories: int | None = None
+    """Trajectories per cell; None: the scale's (full: 120,000, the paper's)."""
+    seeds: int = 5
+    """Seeds per method (0..N-1)."""
+    scale: Literal["tiny", "full"] = "full"
+    """tiny (CPU tests: 2 environments, tiny batches) or full (one GPU per cell)."""
+    out: str | None = None
+    """Table directory; None: baselines/SCALE."""
+    reward: RewardConfig = RewardConfig()
+    """The RL reward's weights (training/baselines/config.py)."""
+    report: Flag = False
+    """Only (re)build the table, curves, landing maps and summary from the finished cells."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -506,6 +530,24 @@ def ablate(a: AblateArgs) -> None:
         sys.exit(128 + summary["stopped_by_signal"])   # the shell's convention, as `ttmjx train`
 
 
+def baseline(a: BaselineArgs) -> None:
+    from eval import baselines
+    methods = baselines.parse_methods(a.method)
+    out = a.out or os.path.join("baselines", a.scale)
+    command = " ".join(["ttmjx baseline", a.method, "--scale", a.scale, "--seeds", str(a.seeds)]
+                       + (["--trajectories", str(a.trajectories)] if a.trajectories else [])
+                       + (["--out", a.out] if a.out else []))
+    if a.report:
+        summary = baselines.build_report(a.scale, out, command)
+    else:
+        summary = baselines.run(methods, a.scale, a.seeds, out, a.trajectories, a.reward, progress=not a.json,
+                                command=command)
+    with open(summary["outputs"]["table"]) as f:
+        report(a, summary, f.read() + f"\nwrote {out}/ (table.md, curves.png, landings/, summary.json)")
+    if summary.get("stopped_by_signal"):
+        sys.exit(128 + summary["stopped_by_signal"])
+
+
 def export(a: ExportArgs) -> None:
     from deploy.export import export_checkpoint, load_export
     path = export_checkpoint(a.checkpoint, a.out, step=a.step, member=a.member, ensemble=a.ensemble,
@@ -610,6 +652,7 @@ COMMANDS: dict[str, Command] = {
                      parse_train),
     "eval": Command(EvalArgs, evaluate, "goal-reaching metrics of a run or checkpoint"),
     "ablate": Command(AblateArgs, ablate, "a paper ablation: cells of (variant, seed) runs -> table, curves, landing maps"),
+    "baseline": Command(BaselineArgs, baseline, "Table I: RL baselines (brax PPO, SAC, ES), GCSL, LFP and GoalsEye -> table, curves"),
     "export": Command(ExportArgs, export, "safetensors weights + contract + golden self-test + ONNX graph for the robot runner"),
     "robot run": Command(RobotRunArgs, robot_run, "the robot runner: play an exported policy on a station"),
     "robot sweep": Command(RobotSweepArgs, robot_sweep, "strict success against added ball and command latency"),

@@ -1,0 +1,177 @@
+"""`ttmjx baseline METHOD`: the paper's Table I methods on one world, through the cells of
+eval/cells.py (skip finished cells, atomic JSON results, the same table, curves and landing maps
+as `ttmjx ablate`).
+
+Methods (the table's variants):
+
+    ppo, sac, es   brax's trainers on training/baselines/env.py (training/baselines/agents.py),
+                   their policy saved as a GoalsEye checkpoint and evaluated by the same final
+                   evaluation as every ablation cell (eval/cells.py: same goals, same throws)
+    gcsl           this project's trainer from 0 demonstrations (practice only)
+    lfp            this project's trainer on demonstrations alone, as many as the budget
+                   (practice off; GoalsEye's gradient updates: the `practice` ablation's
+                   lfp-equal-data)
+    goalseye       this project's trainer as configured (the reference row)
+
+All at the same trajectory budget. An RL cell is not resumable mid-run (brax's trainers keep
+their state in memory): a cell cut short by a signal is redone; a finished one is skipped.
+
+    OUT/runs/<method>-seed<s>/    the cell's run (RL: checkpoints/ only)
+    OUT/results/<method>-seed<s>.json, OUT/table.md, curves.png, landings/, summary.json
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+
+import jax
+
+from eval import ablate
+from eval import cells as cellrun
+from eval import tables as report
+from eval.evaluate import evaluate_uniform
+from training import runconfig
+from training.baselines import agents
+from training.baselines.config import RewardConfig
+from training.runconfig import RunConfig
+from ttmjx.world.backends import Backend, resolve_backend
+
+RL = agents.METHODS
+METHODS = (*RL, "gcsl", "lfp", "goalseye")
+SCALES = ("tiny", "full")
+
+log = print
+
+
+def goalseye_base(scale: str) -> RunConfig:
+    """The GoalsEye configuration every method is compared with: tiny (tests), or full: the
+    paper's "New Results" setting (frame stack of 8 x 16 values, MLP 2 x 1024), one member, at
+    Table I's 120k trajectories (--trajectories to change)."""
+    if scale == "tiny":
+        return runconfig.tiny()
+    if scale == "full":
+        base = runconfig.paper_sim_new()
+        return dataclasses.replace(base, total_trajectories=120_000,
+                                   train=dataclasses.replace(base.train, members=1))
+    raise ValueError(f"unknown scale {scale!r}; expected one of {SCALES}")
+
+
+def tiny_rl() -> dict:
+    """The RL settings of the tiny scale: 2 environments, batches of a few steps (CPU tests)."""
+    return dict(ppo=agents.PPOConfig(num_envs=2, unroll_length=4, batch_size=2, num_minibatches=2,
+                                     num_updates_per_batch=1, value_hidden=(16,)),
+                sac=agents.SACConfig(num_envs=2, batch_size=8, grad_updates_per_step=1, min_replay_size=16,
+                                     max_replay_size=4096, q_hidden=(16,)),
+                es=agents.ESConfig(population_size=1), num_evals=1, num_eval_envs=1)
+
+
+def method_config(method: str, scale: str, seed: int, run_dir: str, trajectories: int | None = None,
+                  reward: RewardConfig = RewardConfig()):
+    """The cell's configuration: a BaselineConfig (RL) or a RunConfig; ValueError naming the
+    method and the problem (a budget below one batch included)."""
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; expected one of {METHODS}")
+    base = goalseye_base(scale)
+    if trajectories is not None:
+        base = dataclasses.replace(base, total_trajectories=trajectories)
+    base = dataclasses.replace(base, seed=seed, run_dir=run_dir)
+    try:
+        if method in RL:
+            run = agents.run_config(method, base)
+            settings = tiny_rl() if scale == "tiny" else {"num_evals": 8}
+            return agents.BaselineConfig(method, run, reward=reward, **settings)
+        overrides = {"gcsl": {"demos": 0, "pretrain_steps": 0, "preset": "gcsl"},
+                     "lfp": {"practice": False, "demos": ablate.ALL_TRAJECTORIES,
+                             "pretrain_steps": ablate.GOALSEYE_UPDATES, "preset": "lfp"},
+                     "goalseye": {}}[method]
+        return ablate.apply(base, overrides)
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"baseline {method} at scale {scale}: {e}") from None
+
+
+def parse_methods(spec: str) -> list[str]:
+    """'ppo', 'ppo,sac' or 'all' -> methods, each once, in METHODS order."""
+    names = list(METHODS) if spec == "all" else [m.strip() for m in spec.split(",")]
+    for m in names:
+        if m not in METHODS:
+            raise ValueError(f"unknown method {m!r}; expected 'all' or a comma-separated list of {', '.join(METHODS)}")
+    return [m for m in METHODS if m in names]
+
+
+def plan(methods: list[str], scale: str, seeds: int, out: str, trajectories: int | None = None,
+         reward: RewardConfig = RewardConfig()) -> list[cellrun.Cell]:
+    """The cells (seed-major), every configuration built and every finished result checked
+    before anything is written."""
+    if os.path.isfile(out):
+        raise ValueError(f"--out {out!r} is a file; expected a directory")
+    chosen = []
+    for seed in range(seeds):
+        for m in methods:
+            run_dir = os.path.join(out, "runs", f"{m}-seed{seed}")
+            cell = cellrun.Cell(m, seed, method_config(m, scale, seed, run_dir, trajectories, reward), run_dir)
+            done = cellrun.result_path(os.path.join(out, "results"), cell)
+            if os.path.exists(done):
+                cellrun.check_result_matches(done, cell)
+            chosen.append(cell)
+    return chosen
+
+
+# -- the RL trainer (the cells seam) ------------------------------------------------------------
+def rl_trainer(cfg: agents.BaselineConfig, progress: bool = True) -> cellrun.Outcome:
+    """brax's trainer for cfg.method, a strict-metric curve point wherever it hands its policy
+    out, the policy saved as a checkpoint of cfg.run, then the cells' final evaluation of it."""
+    run = cfg.run
+    backend = Backend(run.world, resolve_backend(run.backend))
+    curve = []
+
+    def on_policy(steps: int, params):
+        m = evaluate_uniform(run.world, run.policy, params, backend, jax.random.PRNGKey(run.seed + 1),
+                             run.eval_goals)
+        curve.append({"trajectories": steps // run.world.horizon, "updates": 0, "cache_size": 0, **m})
+        if progress:
+            log(f"[baseline] {cfg.method} {steps // run.world.horizon} trajectories: "
+                f"<=30cm {m['within_30cm']:.1%} hit {m['hit_rate']:.1%}", file=sys.stderr)
+
+    params = agents.train(cfg, on_policy)
+    agents.save_policy(cfg, params, run.total_trajectories)
+    final, landings = cellrun.final_evaluation(run.run_dir)
+    return cellrun.Outcome(True, 0, final, curve, landings)
+
+
+def trainer(cfg, progress: bool = True) -> cellrun.Outcome:
+    """RL configurations to rl_trainer, RunConfigs to the GoalsEye trainer."""
+    return rl_trainer(cfg, progress) if isinstance(cfg, agents.BaselineConfig) else cellrun.goalseye(cfg, progress)
+
+
+def run(methods: list[str], scale: str, seeds: int, out: str, trajectories: int | None = None,
+        reward: RewardConfig = RewardConfig(), progress: bool = True, command: str = "") -> dict:
+    """Train the cells that are not finished, then rebuild the table from every finished result."""
+    cells = plan(methods, scale, seeds, out, trajectories, reward)
+    stopped = 0
+    for i, cell in enumerate(cells):
+        log(f"[baseline] {scale}: cell {i + 1}/{len(cells)} {cell.name}", file=sys.stderr)
+        result = cellrun.run_cell(cell, os.path.join(out, "results"), trainer, progress,
+                                  log=lambda m: log(m, file=sys.stderr))
+        if "final" not in result:
+            stopped = result["stopped_by_signal"]
+            break
+        f = result["final"]
+        log(f"[baseline] {cell.name}: <=30cm {f['within_30cm']:.1%} <=20cm {f['within_20cm']:.1%} "
+            f"hit {f['hit_rate']:.1%} in {result['wall_s']:.0f} s", file=sys.stderr)
+    return {**build_report(scale, out, command), "cells_run": [c.name for c in cells], "stopped_by_signal": stopped}
+
+
+def build_report(scale: str, out: str, command: str = "") -> dict:
+    """table.md, curves.png, landings/*.png and summary.json from the finished results in `out`."""
+    results = ablate.load_results(out)
+    if not results:
+        raise ValueError(f"no finished cells in {os.path.join(out, 'results')}; run `ttmjx baseline` first")
+    budgets = sorted({(r["config"].get("run") or r["config"])["total_trajectories"] for r in results})
+    header = {"ablation": "baselines", "scale": scale, "command": command,
+              "title": f"baselines ({scale})",
+              "subtitle": f"GoalsEye against the paper's Table I baselines (RL through brax, GCSL, LFP) at "
+                          f"{'/'.join(f'{t:,}' for t in budgets)} trajectories per cell. Final evaluation of each "
+                          f"cell: uniform goals, seed {cellrun.FINAL_EVAL_SEED} (the same goals and throws for "
+                          f"every cell)."}
+    return report.write_report(out, results, list(METHODS), header)

@@ -1,0 +1,144 @@
+"""RL baselines (issue #12): the brax environment's reward terms are what RewardConfig says on a
+scripted hit; brax's policy converts exactly into a GoalsEye framestack policy; and PPO, SAC and
+ES each train a few updates at the tiny scale through `ttmjx baseline`'s cells, leaving a
+checkpoint that `ttmjx eval` scores with the strict metric and `ttmjx export` exports."""
+import dataclasses
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from eval import baselines
+from models.policy import make_policy
+from training.baselines import agents
+from training.baselines.config import RewardConfig
+from training.baselines.env import TERMS, GoalEnv, reach, targets
+from training.runconfig import tiny
+from ttmjx.tools import striker
+from ttmjx.world import env as task
+
+WORLD = tiny().world
+N = 4
+
+
+def test_reward_config_refuses_bad_weights():
+    for bad in ({"goal": float("nan")}, {"hit": -1.0}, {"smooth": float("inf")}, {"goal_scale": 0.0}):
+        with pytest.raises(ValueError, match=list(bad)[0]):
+            RewardConfig(**bad)
+
+
+def test_actions_map_onto_the_joint_box():
+    r = WORLD.robot
+    np.testing.assert_allclose(targets(WORLD, jnp.zeros(8)), r.home, atol=1e-6)
+    lo, hi = np.asarray(targets(WORLD, -jnp.ones(8))), np.asarray(targets(WORLD, jnp.ones(8)))
+    assert (lo <= np.asarray(r.lower) + 1e-6).all() and (hi >= np.asarray(r.upper) - 1e-6).all()
+
+
+@pytest.fixture(scope="module")
+def scripted():
+    """N throws played by the scripted striker through GoalEnv (MJX), with per-step records."""
+    rcfg = RewardConfig(goal=2.0, goal_scale=0.25, hit=0.7, opponent=0.3, pose=0.01, smooth=0.02)
+    env, pol = GoalEnv(WORLD, rcfg), striker.striker_policy(WORLD)
+    home, scale = jnp.asarray(WORLD.robot.home), jnp.asarray(reach(WORLD))
+
+    def episode(key):
+        k_reset, k_init = jax.random.split(key)
+        s0 = env.reset(k_reset)
+        carry0 = pol.init(None, k_init)
+
+        def body(c, _):
+            s, carry = c
+            carry, target = pol.apply(None, carry, task.observe(WORLD, env.lay, s.pipeline_state), None)
+            s2 = env.step(s, (target - home) / scale)
+            return (s2, carry), (s2.reward, s2.done, {k: s2.metrics[k] for k in TERMS},
+                                 s2.pipeline_state.target, s2.pipeline_state.frames[-1][:8])
+
+        (s, _), rec = jax.lax.scan(body, (s0, carry0), None, length=WORLD.horizon)
+        return s0.pipeline_state.target, s.pipeline_state, rec
+
+    t0, final, (reward, done, terms, tgt, joints) = jax.jit(jax.vmap(episode))(
+        jax.random.split(jax.random.PRNGKey(3), N))
+    return rcfg, jax.tree.map(np.asarray, (t0, final, reward, done, terms, tgt, joints))
+
+
+def test_reward_terms_on_a_scripted_hit(scripted):
+    rcfg, (t0, final, reward, done, terms, tgt, joints) = scripted
+    ev = final.events
+    assert ev.hit.any() and ev.on_opponent.any(), "the striker returned no ball: the test shows nothing"
+    np.testing.assert_allclose(reward, sum(terms[k] for k in TERMS), rtol=1e-5, atol=1e-7)
+    # the event terms: once each, at the step of the event, with the configured weight
+    np.testing.assert_allclose(terms["r_hit"].sum(1), rcfg.hit * ev.hit, atol=1e-6)
+    for b in np.flatnonzero(ev.hit):
+        assert terms["r_hit"][b, ev.hit_step[b]] == pytest.approx(rcfg.hit)
+    np.testing.assert_allclose(terms["r_opponent"].sum(1), rcfg.opponent * ev.on_opponent, atol=1e-6)
+    d = np.linalg.norm(np.nan_to_num(ev.landing) - final.goal, axis=1)
+    np.testing.assert_allclose(terms["r_goal"].sum(1), np.where(ev.landed, rcfg.goal * np.exp(-d / rcfg.goal_scale), 0),
+                               rtol=1e-5, atol=1e-6)
+    # the style terms, every step
+    home, scale = np.asarray(WORLD.robot.home), reach(WORLD)
+    np.testing.assert_allclose(terms["r_pose"], -rcfg.pose * (((joints - home) / scale) ** 2).mean(-1), rtol=1e-4, atol=1e-9)
+    r = WORLD.robot
+    max_step = np.asarray(r.max_speed) * r.speed_margin * WORLD.control_dt
+    prev = np.concatenate([t0[:, None], tgt[:, :-1]], 1)
+    np.testing.assert_allclose(terms["r_smooth"], -rcfg.smooth * (((tgt - prev) / max_step) ** 2).mean(-1),
+                               rtol=1e-4, atol=1e-9)
+    assert (terms["r_smooth"] < 0).any() and (terms["r_pose"] < 0).any()
+    # done at the horizon (exact trajectory counts), not at the landing
+    assert (done[:, -1] == 1).all() and (done[:, :-1] == 0).all()
+
+
+@pytest.mark.parametrize("method", agents.METHODS)
+def test_brax_policy_is_a_goalseye_framestack_policy(method):
+    """The converted PolicyParams act exactly as brax's deterministic policy through GoalEnv's map."""
+    from brax.training.acme import running_statistics
+    cfg = baselines.method_config(method, "tiny", 0, "unused", trajectories=4)
+    obs_size = WORLD.frame_stack * WORLD.obs_size
+    factory = {"ppo": agents.ppo_networks, "sac": agents.sac_networks, "es": agents.es_networks}[method](cfg)
+    nets = factory(obs_size, 8, preprocess_observations_fn=running_statistics.normalize)
+    params = nets.policy_network.init(jax.random.PRNGKey(0))
+    k1, k2, k3 = jax.random.split(jax.random.PRNGKey(1), 3)
+    stats = running_statistics.init_state(jax.ShapeDtypeStruct((obs_size,), jnp.float32))
+    stats = stats.replace(mean=jax.random.normal(k1, (obs_size,)), std=jnp.exp(jax.random.normal(k2, (obs_size,))))
+    frames = jax.random.normal(k3, (5, WORLD.frame_stack, WORLD.obs_size))
+    out = nets.policy_network.apply(stats, params, frames.reshape(5, -1))
+    want = targets(WORLD, (out[0] if isinstance(out, tuple) else out)[:, :8])
+    pp = agents.policy_params(cfg, stats, params)
+    pol = make_policy(cfg.run.policy)
+    obs = task.Obs(frame=frames[:, -1], ball_vel=jnp.zeros((5, 3)), frames=frames, t=jnp.zeros(5, jnp.int32))
+    got = jax.vmap(lambda o: pol.apply(pp, (), o, None)[1])(obs)
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("method", agents.METHODS)
+def test_trains_evaluates_and_exports(method, tmp_path):
+    from deploy.export import export_checkpoint, load_export
+    from eval.evaluate import evaluate_checkpoint
+    from training.checkpoint import load_checkpoint
+    out = str(tmp_path / "table")
+    summary = baselines.run([method], "tiny", 1, out, trajectories=2, progress=False)
+    result = json.load(open(os.path.join(out, "results", f"{method}-seed0.json")))
+    assert result["final"]["goals"] == tiny().eval_goals and 0 <= result["final"]["hit_rate"] <= 1
+    assert result["curve"] and result["config"]["method"] == method
+    assert os.path.exists(summary["outputs"]["table"]) and method in open(summary["outputs"]["table"]).read()
+    run_dir = os.path.join(out, "runs", f"{method}-seed0")
+    loaded = load_checkpoint(run_dir)
+    assert loaded.cfg.preset == f"baseline-{method}" and int(loaded.ck.counters.trajectories) == 2
+    metrics = evaluate_checkpoint(run_dir, goals="4")
+    assert metrics["goals"] == 4 and set(metrics) >= {"within_30cm", "within_20cm", "hit_rate"}
+    policy, contract = load_export(export_checkpoint(run_dir, str(tmp_path / "export")))
+    assert policy.spec.kind == "framestack" and policy.members == 1
+    # the same cell again: skipped, same result
+    again = baselines.run([method], "tiny", 1, out, trajectories=2, progress=False)
+    assert again["cells_run"] == [f"{method}-seed0"]
+    assert json.load(open(os.path.join(out, "results", f"{method}-seed0.json"))) == result
+
+
+def test_gcsl_and_lfp_are_the_presets():
+    g = baselines.method_config("gcsl", "tiny", 0, "r")
+    lfp = baselines.method_config("lfp", "tiny", 0, "r")
+    assert g.demos == 0 and g.practice and not lfp.practice and lfp.demos == lfp.total_trajectories
+    assert dataclasses.replace(g, demos=tiny().demos, pretrain_steps=tiny().pretrain_steps, preset="tiny") == \
+        dataclasses.replace(tiny(), run_dir="r")
