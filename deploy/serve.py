@@ -210,12 +210,13 @@ class Server:
         self.counts["loop_max_gap_ms"] = max(self.counts["loop_max_gap_ms"], int(gap * 1000))
 
     def delivered_joints(self, now: float) -> np.ndarray:
-        """[8] the station's newest joint sample delivered by now (its joint rate, latency and
-        jitter: deploy/station.py joint_samples are (time, q, delivery time))."""
-        for t, q, due in reversed(self.s.joint_samples):
-            if due <= now:
-                return q
-        return self.s.joint_samples[0][1]
+        """[8] the joints as the controllers measure them when they answer: an EGM message carries
+        the arm's joints at its send time, the drive's registers the gantry's position at the
+        read. The runner's drivers stamp both at receipt, so the transport is the feedback's
+        only delay; the timing profile's joint latency, which in process ages samples that keep
+        their exact stamps, is not applied again (it would shift every stamp by the latency
+        plus the sample's age)."""
+        return self.s.joints()
 
     def _send_egm(self, now: float) -> None:
         f, q = self.faults, np.rad2deg(self.delivered_joints(now)[2:8])
