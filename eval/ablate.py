@@ -274,17 +274,8 @@ def run(name: str, scale: str, seeds: int, out: str, spec: str | None = None, tr
         if c.config.practice and practice_iterations(c.config) == 0:
             log(f"[ablate] note: {c.name} practises nothing: its {c.config.total_trajectories} trajectories do not "
                 f"exceed its {c.config.demos} demonstrations", file=sys.stderr)
-    stopped = 0
-    for i, cell in enumerate(cells):
-        log(f"[ablate] {name} {scale}: cell {i + 1}/{len(cells)} {cell.name}", file=sys.stderr)
-        result = cellrun.run_cell(cell, os.path.join(out, "results"), trainer, progress,
-                                  log=lambda m: log(m, file=sys.stderr))
-        if "final" not in result:
-            stopped = result["stopped_by_signal"]
-            break
-        f = result["final"]
-        log(f"[ablate] {cell.name}: <=30cm {f['within_30cm']:.1%} <=20cm {f['within_20cm']:.1%} "
-            f"hit {f['hit_rate']:.1%} in {result['wall_s']:.0f} s", file=sys.stderr)
+    stopped = cellrun.run_cells(cells, os.path.join(out, "results"), trainer, progress, f"ablate {name} {scale}",
+                                log=lambda m: log(m, file=sys.stderr))
     summary = build_report(name, scale, out, command)
     return {**summary, "cells_run": [c.name for c in cells], "stopped_by_signal": stopped}
 

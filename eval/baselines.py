@@ -148,17 +148,8 @@ def run(methods: list[str], scale: str, seeds: int, out: str, trajectories: int 
         reward: RewardConfig = RewardConfig(), progress: bool = True, command: str = "") -> dict:
     """Train the cells that are not finished, then rebuild the table from every finished result."""
     cells = plan(methods, scale, seeds, out, trajectories, reward)
-    stopped = 0
-    for i, cell in enumerate(cells):
-        log(f"[baseline] {scale}: cell {i + 1}/{len(cells)} {cell.name}", file=sys.stderr)
-        result = cellrun.run_cell(cell, os.path.join(out, "results"), trainer, progress,
-                                  log=lambda m: log(m, file=sys.stderr))
-        if "final" not in result:
-            stopped = result["stopped_by_signal"]
-            break
-        f = result["final"]
-        log(f"[baseline] {cell.name}: <=30cm {f['within_30cm']:.1%} <=20cm {f['within_20cm']:.1%} "
-            f"hit {f['hit_rate']:.1%} in {result['wall_s']:.0f} s", file=sys.stderr)
+    stopped = cellrun.run_cells(cells, os.path.join(out, "results"), trainer, progress, f"baseline {scale}",
+                                log=lambda m: log(m, file=sys.stderr))
     return {**build_report(scale, out, command), "cells_run": [c.name for c in cells], "stopped_by_signal": stopped}
 
 

@@ -102,6 +102,20 @@ def run_cell(cell: Cell, results_dir: str, trainer: Trainer, progress: bool = Tr
     return result
 
 
+def run_cells(cells: list, results_dir: str, trainer: Trainer, progress: bool, tag: str, log) -> int:
+    """run_cell over `cells` in order, logging each (`[tag] ...`); stops at the first cell a
+    signal cut short. Returns that signal (0: every cell finished)."""
+    for i, cell in enumerate(cells):
+        log(f"[{tag}] cell {i + 1}/{len(cells)} {cell.name}")
+        result = run_cell(cell, results_dir, trainer, progress, log=log)
+        if "final" not in result:
+            return result["stopped_by_signal"]
+        f = result["final"]
+        log(f"[{tag}] {cell.name}: <=30cm {f['within_30cm']:.1%} <=20cm {f['within_20cm']:.1%} "
+            f"hit {f['hit_rate']:.1%} in {result['wall_s']:.0f} s")
+    return 0
+
+
 def add_wall_time(run_dir: str, seconds: float) -> dict:
     """Wall time summed over the calls that worked on a cell (a resumed cell spans several; a
     call killed outright is not counted)."""
