@@ -17,12 +17,20 @@ the buffered samples, into the stack) but not executed, and are not counted as s
 Inputs. Joint feedback (Robot.read) and ball samples (BallTracker.read) are validated one by
 one (deploy.safety.FAULTS), buffered, and linearly interpolated to each deadline.
 
+Collector. Python's cyclic garbage collector stops every thread while it runs, and a full
+collection over a large heap (a process that has loaded JAX and compiled functions: ~130 ms for
+250k objects, measured) is longer than the stale bound: the drivers' threads would stop
+answering and the runner would see its own joints go stale. So the collector is off while
+episodes run (_collector_paused): objects older than the session are frozen out of it, and it
+runs between episodes, when nothing is timed.
+
 Safety. See deploy/safety.py for the command filter and deploy/modes.py for the state machine.
 """
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import gc
 from collections import Counter
 from typing import Any, Callable, Protocol
 
@@ -91,6 +99,22 @@ TRACK_GAP = 2.5
 
 class NoBallError(TimeoutError):
     """No ball came toward the robot within arm_timeout_s (the runner stays ARMED)."""
+
+
+@contextlib.contextmanager
+def _collector_paused():
+    """The cyclic garbage collector off (module docstring, "Collector"); re-entrant. The
+    episode's own garbage is freed by reference counting; cycles wait for the collection between episodes (run_episodes)."""
+    if not gc.isenabled():                  # an outer pause (or the caller's choice) stands
+        yield
+        return
+    gc.freeze()         # what exists now is never traversed again (not collected first: that
+    gc.disable()        # full pass is the pause avoided here, and the drivers already run)
+    try:
+        yield
+    finally:
+        gc.enable()
+        gc.unfreeze()
 
 
 def frame_of(joints: np.ndarray, ball: np.ndarray, goal: np.ndarray) -> np.ndarray:
@@ -200,7 +224,7 @@ class Runner:
         if goal.shape[0] != 1:
             raise ValueError(f"run_episode takes one goal (x, y), got {goal.shape[0]}")
         self.sm.require(Mode.ARMED, action="run_episode()")
-        with self._hold_on_error():
+        with _collector_paused(), self._hold_on_error():
             if not self._wait_for_ball(t_start):
                 return None
             return self._run(goal[0], self._track_start() if t_start is None else float(t_start))
@@ -218,27 +242,29 @@ class Runner:
         on_no_ball, a ball that never came (NoBallError) calls on_no_ball(i) and moves on to
         the next goal; without, it raises."""
         episodes = []
-        for i, goal in enumerate(check_goals(goals)):
-            if self.mode == Mode.HOLD or not self.move_home(None if poses is None else poses[i]):
-                break
-            t_start = on_armed(i) if on_armed is not None else None
-            try:
-                ep = self.run_episode(goal, t_start)
-            except NoBallError:
-                if on_no_ball is None:
-                    raise
-                on_no_ball(i)
-                continue
-            if ep is None:
-                break
-            if complete is not None:
-                ep = complete(i, ep)
-            ep.meta["episode"] = i
-            if out_dir is not None:
-                save_episode(out_dir, f"{prefix}_{i:04d}", ep)
-            episodes.append(ep)
-            if self.mode == Mode.HOLD:
-                break
+        with _collector_paused():
+            for i, goal in enumerate(check_goals(goals)):
+                if self.mode == Mode.HOLD or not self.move_home(None if poses is None else poses[i]):
+                    break
+                t_start = on_armed(i) if on_armed is not None else None
+                try:
+                    ep = self.run_episode(goal, t_start)
+                except NoBallError:
+                    if on_no_ball is None:
+                        raise
+                    on_no_ball(i)
+                    continue
+                if ep is None:
+                    break
+                if complete is not None:
+                    ep = complete(i, ep)
+                ep.meta["episode"] = i
+                if out_dir is not None:
+                    save_episode(out_dir, f"{prefix}_{i:04d}", ep)
+                episodes.append(ep)
+                if self.mode == Mode.HOLD:
+                    break
+                gc.collect()                # between episodes: only what the session made
         return episodes
 
     # ------------------------------------------------------------------ inputs

@@ -30,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import dataclasses
+import gc
 import heapq
 import json
 import math
@@ -447,6 +448,9 @@ def serve(cell: CellConfig, station, faults: Faults, egm_hz: float = EGM_HZ, see
     check_ports(cell)
     app = Server(station, cell, faults, egm_hz, seed)
     station.prefetch()
+    # Python's cyclic collector stops every thread; a full pass over what loading JAX and
+    # compiling left behind takes ~100 ms, a stall of every stream. Frozen, later passes skip it.
+    gc.freeze()
     modbus_thread = _start_modbus(app)
     launcher = None
     if cell.launcher is not None:

@@ -331,6 +331,28 @@ def test_recurrent_state_is_threaded_and_reset_per_episode():
         np.testing.assert_array_equal(ep.extras["raw_actions"][1:, 0], np.arange(CONTRACT.horizon - 1))
 
 
+def test_the_garbage_collector_is_off_while_episodes_run_and_back_after():
+    """A full collection stops every thread (the drivers' too) for longer than the stale bound in
+    a process that has loaded JAX; the runner keeps it off during episodes (deploy/runner.py)."""
+    import gc
+
+    class Watching(FollowBallPolicy):
+        seen: list = []
+
+        def step(self, state, frame, frames):
+            self.seen.append(gc.isenabled())
+            return super().step(state, frame, frames)
+
+    policy = Watching(CONTRACT)
+    clock, robot, tracker, runner = bench(policy=policy)
+    assert gc.isenabled()
+    eps = runner.run_episodes([[0.7, 0.3], [0.4, -0.5]], on_armed=lambda i: tracker.throw_in(0.2))
+    assert len(eps) == 2 and policy.seen and not any(policy.seen)
+    assert gc.isenabled() and not gc.get_freeze_count()
+    one_episode(runner, tracker)                       # run_episode alone pauses it too
+    assert len(policy.seen) > 2 * (CONTRACT.horizon - 2) and not any(policy.seen) and gc.isenabled()
+
+
 def test_episodes_are_saved_as_trajectory_records(tmp_path):
     clock, robot, tracker, runner = bench()
     runner.policy_hash = "sha256:abc123"
