@@ -246,3 +246,47 @@ def test_served_arm_and_gantry_ramp_apart():
     assert np.allclose(s._ctrl_at(ramp)[2:8], arm) and np.allclose(s._ctrl_at(ramp)[0:2], q0[0:2] + 0.05 * (ramp - 0.004) / ramp)
     assert np.allclose(s._ctrl_at(ramp + 0.004), np.concatenate([gantry, arm]))
     assert np.allclose(s._ctrl_at(ramp / 2)[2:8], q0[2:8] + 0.05)
+
+
+def test_a_stalled_gantry_reading_is_not_joined_as_a_jump():
+    """After a stall of both streams (55 ms, as a loaded serve once did) the arm's message can
+    come before the gantry's reading: the joined samples must still move the gantry no faster
+    than it moved (the runner's joint_jump check compares their stamps), so the sample whose
+    gantry part would be held is not joined (deploy/drivers/cell.py)."""
+    import collections
+    import threading
+    from deploy.drivers import gantry as gantry_mod
+    from deploy.drivers.cell import CellRobot
+    from deploy.drivers.egm import EgmArm
+    from deploy.fakes import FakeClock
+
+    cfg = cellconfig.CellConfig()
+    clock = FakeClock(start=0.0)
+    gantry, arm = object.__new__(gantry_mod.ModbusGantry), object.__new__(EgmArm)   # no sockets
+    gantry.cfg, gantry._lock, gantry.latched, gantry.sample = cfg.gantry, threading.Lock(), None, None
+    gantry.history = collections.deque(maxlen=gantry_mod.HISTORY)
+    arm.cfg, arm._lock, arm.latched, arm.sample = cfg.egm, threading.Lock(), None, None
+    robot = CellRobot(gantry, arm, clock)
+    v = 0.8                                                   # m/s, the gantry's x
+    events = []                                               # (time, part)
+    events += [(t, "gantry") for t in np.arange(0.0, 0.1, 0.01)]
+    events += [(t, "arm") for t in np.arange(0.0, 0.1, 0.004)]
+    events += [(0.157, "arm"), (0.159, "gantry")]             # after the stall: the arm first
+    events += [(t, "arm") for t in np.arange(0.161, 0.25, 0.004)]
+    events += [(t, "gantry") for t in np.arange(0.169, 0.25, 0.01)]
+    joined = []
+    for t, part in sorted(events):
+        clock.t = t
+        if part == "gantry":
+            gantry.sample = (t, np.array([v * t, 0.0]))
+            gantry.history.append(gantry.sample)
+        else:
+            arm.sample = (t, np.zeros(6))
+        s, q = robot.read()
+        if np.isfinite(s) and (not joined or s > joined[-1][0]):
+            joined.append((s, q[0]))
+    ts, xs = np.array(joined).T
+    assert ts.max() > 0.2 and ((ts > 0.1) & (ts < 0.157)).sum() == 0
+    rc = RunnerConfig()                                       # the runner's rule, at the true speed
+    excess = np.abs(np.diff(xs)) - (rc.jump_factor * v * np.diff(ts) + rc.jump_tolerance)
+    assert excess.max() <= 0, (excess.max(), ts[np.argmax(excess) + 1])
