@@ -248,28 +248,35 @@ def test_served_arm_and_gantry_ramp_apart():
     assert np.allclose(s._ctrl_at(ramp / 2)[2:8], q0[2:8] + 0.05)
 
 
+def joined_robot():
+    """(CellRobot over a real ModbusGantry and EgmArm without sockets, clock, feed(t, part, q))."""
+    import threading
+    from deploy.drivers import egm as egm_mod
+    from deploy.drivers import gantry as gantry_mod
+    from deploy.drivers.cell import CellRobot
+    from deploy.drivers.history import SampleHistory
+    from deploy.fakes import FakeClock
+    cfg = cellconfig.CellConfig()
+    clock = FakeClock(start=0.0)
+    gantry, arm = object.__new__(gantry_mod.ModbusGantry), object.__new__(egm_mod.EgmArm)
+    for part, c, keep in ((gantry, cfg.gantry, gantry_mod.HISTORY), (arm, cfg.egm, egm_mod.HISTORY)):
+        part.cfg, part._lock, part.latched, part.sample, part.history = c, threading.Lock(), None, None, SampleHistory(keep)
+
+    def feed(t, part, q):
+        dev = gantry if part == "gantry" else arm
+        dev.sample = (t, np.asarray(q, np.float64))
+        dev.history.append(t, q)
+    return CellRobot(gantry, arm, clock), clock, feed
+
+
 def test_a_stalled_gantry_reading_is_not_joined_as_a_jump():
     """After a stall of both streams (55 ms, as a loaded serve once did) the arm's message can
     come before the gantry's reading: the joined samples must still move the gantry no faster
-    than it moved (the runner's joint_jump check compares their stamps), so the sample whose
-    gantry part would be held is not joined (deploy/drivers/cell.py)."""
-    import collections
-    import threading
-    from deploy.drivers import gantry as gantry_mod
-    from deploy.drivers.cell import CellRobot
-    from deploy.drivers.egm import EgmArm
-    from deploy.fakes import FakeClock
-
-    cfg = cellconfig.CellConfig()
-    clock = FakeClock(start=0.0)
-    gantry, arm = object.__new__(gantry_mod.ModbusGantry), object.__new__(EgmArm)   # no sockets
-    gantry.cfg, gantry._lock, gantry.latched, gantry.sample = cfg.gantry, threading.Lock(), None, None
-    gantry.history = collections.deque(maxlen=gantry_mod.HISTORY)
-    arm.cfg, arm._lock, arm.latched, arm.sample = cfg.egm, threading.Lock(), None, None
-    robot = CellRobot(gantry, arm, clock)
-    v = 0.8                                                   # m/s, the gantry's x
-    events = []                                               # (time, part)
-    events += [(t, "gantry") for t in np.arange(0.0, 0.1, 0.01)]
+    than it moved (the runner's joint_jump check compares their stamps), so the parts are
+    joined where the gantry's line still reaches (deploy/drivers/cell.py)."""
+    robot, clock, feed = joined_robot()
+    v = 0.8                                                   # m/s, the gantry's x; the arm's j1
+    events = [(t, "gantry") for t in np.arange(0.0, 0.1, 0.01)]
     events += [(t, "arm") for t in np.arange(0.0, 0.1, 0.004)]
     events += [(0.157, "arm"), (0.159, "gantry")]             # after the stall: the arm first
     events += [(t, "arm") for t in np.arange(0.161, 0.25, 0.004)]
@@ -277,16 +284,32 @@ def test_a_stalled_gantry_reading_is_not_joined_as_a_jump():
     joined = []
     for t, part in sorted(events):
         clock.t = t
-        if part == "gantry":
-            gantry.sample = (t, np.array([v * t, 0.0]))
-            gantry.history.append(gantry.sample)
-        else:
-            arm.sample = (t, np.zeros(6))
+        feed(t, part, [v * t, 0.0] if part == "gantry" else [v * t, 0, 0, 0, 0, 0])
         s, q = robot.read()
         if np.isfinite(s) and (not joined or s > joined[-1][0]):
-            joined.append((s, q[0]))
-    ts, xs = np.array(joined).T
-    assert ts.max() > 0.2 and ((ts > 0.1) & (ts < 0.157)).sum() == 0
+            joined.append((s, q[0], q[2]))
+    ts, xs, js = np.array(joined).T
+    assert ts.max() > 0.2 and ((ts > 0.1 + 1e-9) & (ts < 0.157)).sum() == 0
+    np.testing.assert_allclose(js, v * ts, atol=1e-9)          # the arm read at the joined time
     rc = RunnerConfig()                                       # the runner's rule, at the true speed
     excess = np.abs(np.diff(xs)) - (rc.jump_factor * v * np.diff(ts) + rc.jump_tolerance)
     assert excess.max() <= 0, (excess.max(), ts[np.argmax(excess) + 1])
+
+
+def test_one_late_gantry_reading_does_not_freeze_the_joined_sample():
+    """The runner read nothing for 0.4 s (it was saving an episode) and the gantry's newest
+    reading is 46 ms old when it reads again: the joined sample is the gantry's line's end, not
+    the sample of 0.4 s ago (which the runner would find stale at once)."""
+    robot, clock, feed = joined_robot()
+    for t in np.arange(0.0, 0.02, 0.004):
+        clock.t = t
+        feed(t, "arm", np.zeros(6))
+        feed(t, "gantry", np.zeros(2))
+        robot.read()
+    for t in np.arange(0.02, 0.5, 0.004):
+        feed(t, "arm", np.zeros(6))
+    for t in np.arange(0.02, 0.45, 0.01):
+        feed(t, "gantry", np.zeros(2))
+    clock.t = 0.5
+    s, _ = robot.read()
+    assert s == pytest.approx(0.44 + 0.01), s

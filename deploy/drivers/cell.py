@@ -3,10 +3,11 @@ into the 8 joints in the contract's order (JOINT_NAMES: gantry_x, gantry_y, j1..
 tracker, the launcher, and `ttmjx robot run --station cell` (run_cell).
 
 Timestamps: each part keeps its own (arm: receipt of the EGM message, gantry: receipt of the
-Modbus reply; both in `parts()`). read() returns one sample at the arm's stamp (the newest, at
-250 Hz): the arm's joints, and the gantry's line through its two newest readings at that time
-(ModbusGantry.read_at, followed at most one poll period past the newest; an arm sample later than
-that is not joined until the gantry's next reading), so the 100 Hz gantry does not lag its
+Modbus reply; both in `parts()`, with recent history). read() returns one sample at the arm's
+stamp (the newest, at 250 Hz): the arm's joints, and the gantry's line through its two newest
+readings at that time (ModbusGantry.read_at, followed at most one poll period past the newest;
+when the gantry's next reading is later than that, both parts are read at the end of its
+line instead, the arm interpolated between its messages), so the 100 Hz gantry does not lag its
 stamp by up to a poll (a 10 ms lag the policy, trained on feedback sampled with the arm, reads
 as a slower gantry). So that one fresh part never hides a silent one, a part whose newest
 sample is older than its stale_s freezes read() at the last sample it returned: the runner
@@ -53,16 +54,18 @@ class CellRobot:
         now = self.clock.now()
         if now - g[0] > self.stale_s[0] or now - a[0] > self.stale_s[1]:
             return self._last[0], self._last[1].copy()
-        if a[0] > g[0] + 1.0 / self.gantry.cfg.poll_hz:
-            # The gantry's line would be held here, not followed (read_at): its next reading is
-            # late (a stall of the drive or the network). A sample joined now would show the
-            # gantry frozen and, once the reading comes, jump by all the motion it missed within
-            # one arm period (a false joint_jump). Not advancing the joined sample instead lets the
-            # runner extrapolate it, then see it stale if the gantry stays silent.
+        # The joined time: the arm's newest, unless the gantry's line does not reach it (its next
+        # reading is late: a stall of the drive, the network or this process). Joined later,
+        # the gantry would show held and then jump by all the motion it missed within one arm
+        # period (a false joint_jump); joined at the arm's newest but with the old gantry stamp,
+        # one late reading would freeze the sample. So both parts are read at the time the
+        # gantry's line still covers.
+        t = min(a[0], g[0] + 1.0 / self.gantry.cfg.poll_hz)
+        if t <= self._last[0]:
             return self._last[0], self._last[1].copy()
         q = np.empty(8)
-        q[GANTRY], q[ARM] = self.gantry.read_at(a[0]), a[1]
-        self._last = (a[0], q)
+        q[GANTRY], q[ARM] = self.gantry.read_at(t), self.arm.read_at(t)
+        self._last = (t, q)
         return self._last[0], q.copy()
 
     def send(self, q: np.ndarray) -> None:

@@ -31,10 +31,12 @@ from google.protobuf.message import DecodeError
 
 from deploy.drivers.config import EgmConfig
 from deploy.drivers.faults import FaultLog
+from deploy.drivers.history import SampleHistory
 from deploy.drivers.tracker import bind_udp
 from deploy.hardware import Clock
 
 ARM_JOINTS = 6
+HISTORY = 64                    # messages kept for read_at (0.26 s at 250 Hz)
 DATA = egm_pb2.EgmHeader.MessageType.Value("MSGTYPE_DATA")
 MOTORS_ON = egm_pb2.EgmMotorState.MotorStateType.Value("MOTORS_ON")
 RAPID_RUNNING = egm_pb2.EgmRapidCtrlExecState.RapidCtrlExecStateType.Value("RAPID_RUNNING")
@@ -59,12 +61,13 @@ class EgmArm:
         self.egm = open_egm(cfg)
         self._lock = threading.Lock()
         self.sample: tuple[float, np.ndarray] | None = None     # (receipt time, q [6] rad)
+        self.history = SampleHistory(HISTORY)                   # recent accepted messages
         self.latched: str | None = None                         # a LATCHING fault's name
         self.last_seq: int | None = None
         self._target: np.ndarray | None = None                  # [6] rad
         self._speed = np.zeros(ARM_JOINTS)                      # [6] rad/s
         self._t_target = -np.inf
-        self.received = self.replies = 0
+        self.received = self.replies = self.buffered = 0
         self._stale_logged = False
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="egm", daemon=True)
@@ -82,6 +85,14 @@ class EgmArm:
                 return None
             t, q = self.sample
             return t, (np.full(ARM_JOINTS, np.nan) if self.latched else q.copy())
+
+    def read_at(self, t: float) -> np.ndarray | None:
+        """q [6] rad at time t (at most the newest receipt time: interpolated between the
+        accepted messages around it); NaN while a latching fault stands; None before the first."""
+        with self._lock:
+            if self.latched and len(self.history):
+                return np.full(ARM_JOINTS, np.nan)
+            return self.history.at(t, 0.0)
 
     def set_target(self, q: np.ndarray) -> None:
         """New position target q [6] rad: sent in the replies from the next message on."""
@@ -104,13 +115,31 @@ class EgmArm:
                 if self._stop.is_set():
                     return
                 raise
-            now = self.clock.now()
             if not ok:
-                self._check_stale(now)
+                self._check_stale(self.clock.now())
                 continue
-            self.received += 1
-            if self._accept(state.robot_message, now):
+            states = [state] + self._buffered()
+            now = self.clock.now()
+            self.received += len(states)
+            accepted = [q for q in (self._accept(st.robot_message, now) for st in states) if q is not None]
+            if accepted and self._keep(accepted[-1], now):     # every one checked, the newest kept
                 self._reply(now)
+
+    def _buffered(self) -> list:
+        """Messages already waiting behind the one just received (this thread was late: a
+        stall of this process). All stamped at this receipt, the older ones would put old
+        joints at a new time (a false jump), so only the newest is kept."""
+        out = []
+        while True:
+            try:
+                ok, state = self.egm.receive_from_robot(timeout=0)
+            except DecodeError as e:
+                self.faults.add(self.clock.now(), "egm", "egm_malformed", f"protobuf: {e}")
+                continue
+            if not ok:
+                return out
+            out.append(state)
+            self.buffered += 1
 
     def _check_stale(self, now: float) -> None:
         with self._lock:
@@ -119,12 +148,13 @@ class EgmArm:
             self._stale_logged = True
             self.faults.add(now, "egm", "egm_stream_stopped", f"no message for {now - t:.3f} s")
 
-    def _accept(self, msg, now: float) -> bool:
-        """Check one EgmRobot message; keep its joints (True) or log and drop it (False)."""
+    def _accept(self, msg, now: float) -> np.ndarray | None:
+        """Check one EgmRobot message (sequence, type, motors, RAPID): its joints q [6] rad, or
+        None (logged) if it is dropped."""
         fault = self._message_fault(msg)
         if fault is not None:
             self.faults.add(now, "egm", *fault)
-            return False
+            return None
         q = np.deg2rad(np.asarray(msg.feedBack.joints.joints, np.float64))
         latched = None
         if msg.motorState.state != MOTORS_ON:
@@ -134,10 +164,17 @@ class EgmArm:
         if latched and not self.latched:
             self.faults.add(now, "egm", latched, f"seq {msg.header.seqno}")
         with self._lock:
-            self.sample, self.last_seq = (now, q), msg.header.seqno
+            self.last_seq = msg.header.seqno
             self.latched = self.latched or latched
         self._stale_logged = False
-        return not self.latched
+        return q
+
+    def _keep(self, q: np.ndarray, now: float) -> bool:
+        """q [6] becomes the newest sample, stamped now; True if it may be answered."""
+        with self._lock:
+            self.sample = (now, q)
+            self.history.append(now, q)
+            return not self.latched
 
     def _message_fault(self, msg) -> tuple[str, str] | None:
         """(name, detail) of what is wrong with the message, or None."""

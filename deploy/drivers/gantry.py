@@ -36,6 +36,7 @@ from pymodbus.exceptions import ModbusException
 
 from deploy.drivers.config import GantryConfig, Registers
 from deploy.drivers.faults import FaultLog
+from deploy.drivers.history import SampleHistory
 from deploy.hardware import Clock
 
 ENABLE, NEW_SETPOINT = 1, 2                 # control bits
@@ -72,11 +73,12 @@ class ModbusGantry:
                              f"(unreachable host, or nothing listening)")
         self._lock = threading.Lock()
         self.sample: tuple[float, np.ndarray] | None = None      # (receipt time, q [2] m)
-        self.history: collections.deque = collections.deque(maxlen=HISTORY)   # recent samples
+        self.history = SampleHistory(HISTORY)                  # recent readings
         self.latched: str | None = None
         self._pending: np.ndarray | None = None
         self._toggle = 0
         self.reads = self.writes = self.errors = 0
+        self._rtts: collections.deque = collections.deque(maxlen=32)   # recent read round trips (s)
         self._stop = threading.Event()
         self._wake = threading.Event()             # a new target (or close)
         self._thread = threading.Thread(target=self._loop, name="gantry", daemon=True)
@@ -99,16 +101,9 @@ class ModbusGantry:
         newest (so a 100 Hz reading joins a 250 Hz arm sample without lagging it by up to a
         poll); the oldest kept reading before it. The same t gives the same value."""
         with self._lock:
-            if not self.history:
-                return None
-            if self.latched:
+            if self.latched and self.history:
                 return np.full(2, np.nan)
-            ts = np.array([h[0] for h in self.history])
-            qs = np.array([h[1] for h in self.history])
-        if len(ts) < 2 or t <= ts[-1]:
-            return np.array([np.interp(t, ts, qs[:, i]) for i in range(2)])
-        dt = min(t - ts[-1], 1.0 / self.cfg.poll_hz)
-        return qs[-1] + (qs[-1] - qs[-2]) * (dt / max(ts[-1] - ts[-2], 1e-9))
+            return self.history.at(t, 1.0 / self.cfg.poll_hz)
 
     def set_target(self, q: np.ndarray) -> None:
         """New position target q [2] m: the thread writes it at once (its next transaction)."""
@@ -163,10 +158,21 @@ class ModbusGantry:
         r = self.regs
         lo = min(r.actual_x, r.actual_y, r.status)
         n = max(r.actual_x + 2, r.actual_y + 2, r.status + 1) - lo
+        sent = self.clock.now()
         res = self.client.read_holding_registers(lo, count=n, device_id=self.cfg.device_id)
         now = self.clock.now()
         if res.isError():
             raise ModbusException(f"read at {lo}: {res}")
+        rtt, usual = now - sent, (float(np.median(self._rtts)) if self._rtts else 0.0)
+        self._rtts.append(rtt)
+        if rtt > usual + 1.0 / self.cfg.poll_hz:
+            # The drive measured somewhere between the request and the receipt: a reply a poll
+            # period later than the drive's usual answer (a stall of the drive, the network or
+            # this process) cannot be placed in time; stamped at receipt it would put an old
+            # position at a new time (a false jump). The next poll follows at once.
+            self.faults.add(now, "gantry", "gantry_late_reply",
+                            f"{1000 * rtt:.1f} ms (usually {1000 * usual:.1f} ms)")
+            return
         w = res.registers
         q = np.array([decode_int32(w[r.actual_x - lo:r.actual_x - lo + 2], r),
                       decode_int32(w[r.actual_y - lo:r.actual_y - lo + 2], r)]) / r.counts_per_m
@@ -176,7 +182,7 @@ class ModbusGantry:
             self.faults.add(now, "gantry", latched, f"status word {status:#06x}")
         with self._lock:
             self.sample = (now, q)
-            self.history.append(self.sample)
+            self.history.append(now, q)
             self.latched = self.latched or latched
         self.reads += 1
 
