@@ -109,7 +109,7 @@ def over_sockets(policy: str, goals, seed: int, faults: str, egm_hz: float, timi
     with open(path, "w") as f:
         f.write(cellconfig.to_toml(cfg))
     env = {**os.environ, "PYTHONPATH": ROOT}
-    proc = subprocess.Popen([sys.executable, *(["/tmp/watch_patch.py"] if os.environ.get("WATCH") else ["-m", "ttmjx.cli"]), "robot", "serve", "--config", path,
+    proc = subprocess.Popen([sys.executable, "-m", "ttmjx.cli", "robot", "serve", "--config", path,
                              "--policy", policy, "--seed", str(seed), "--faults", faults,
                              "--egm-hz", str(egm_hz), "--timing", timing, "--json"], stdout=subprocess.PIPE, env=env, text=True,
                             preexec_fn=None if server_cpu is None else lambda: os.sched_setaffinity(0, {server_cpu}))
