@@ -276,7 +276,7 @@ class Runner:
         if q.shape != (8,):
             raise ValueError(f"Robot.read() returned joints of shape {q.shape}, expected (8,)")
         t = float(t)
-        faults = self._joint_faults(t, q, now)
+        faults = self._joint_faults(t, q, self._after_read(now))
         repeat = faults == 0 and t == self.joints.newest_time   # the same sample read again
         if not repeat:
             if self._log is not None:
@@ -287,8 +287,13 @@ class Runner:
             faults |= FAULTS["joint_stale"]
         return faults
 
+    def _after_read(self, now: float) -> float:
+        """The time a sensor read ended: what its samples' times are checked against (a driver
+        thread may stamp a sample on this clock after the tick's `now` and before the read)."""
+        return max(now, float(self.clock.now()))
+
     def _joint_faults(self, t: float, q: np.ndarray, now: float) -> int:
-        """Fault bits of one new joint sample (0 = accept)."""
+        """Fault bits of one new joint sample (0 = accept); now: when it was read."""
         cfg, lim = self.config, self.limits
         if not (np.isfinite(t) and np.all(np.isfinite(q))):
             return FAULTS["joint_nonfinite"]
@@ -312,9 +317,9 @@ class Runner:
         if xyz.shape != (len(ts), 3):
             raise ValueError(f"BallTracker.read() returned {len(ts)} times and positions of shape "
                              f"{xyz.shape}, expected ({len(ts)}, 3)")
-        faults = 0
+        faults, read_at = 0, self._after_read(now)
         for t, x in zip(ts, xyz):
-            ok = self._ball_ok(float(t), x, now)
+            ok = self._ball_ok(float(t), x, read_at)
             if self._log is not None:
                 self._log.add_ball(float(t), x, ok)
             if ok:

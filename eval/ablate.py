@@ -236,17 +236,8 @@ def plan(name: str, scale: str, seeds: int, out: str, spec: str | None = None,
          trajectories: int | None = None) -> list[cellrun.Cell]:
     """The selected cells with their configurations, checked before anything is written: every
     variant config valid, every finished result computed with the config asked for now."""
-    if os.path.isfile(out):
-        raise ValueError(f"--out {out!r} is a file; expected an ablation directory")
-    chosen = []
-    for variant, seed in select(name, cell_order(name, seeds), spec):
-        run_dir = os.path.join(out, "runs", f"{variant}-seed{seed}")
-        cell = cellrun.Cell(variant, seed, variant_config(name, variant, scale, seed, run_dir, trajectories), run_dir)
-        done = cellrun.result_path(os.path.join(out, "results"), cell)
-        if os.path.exists(done):
-            cellrun.check_result_matches(done, cell)
-        chosen.append(cell)
-    return chosen
+    return cellrun.planned_cells(out, select(name, cell_order(name, seeds), spec),
+                                 lambda v, seed, run_dir: variant_config(name, v, scale, seed, run_dir, trajectories))
 
 
 def status(out: str, name: str, seeds: int) -> list[str]:

@@ -103,18 +103,9 @@ def plan(methods: list[str], scale: str, seeds: int, out: str, trajectories: int
          reward: RewardConfig = RewardConfig()) -> list[cellrun.Cell]:
     """The cells (seed-major), every configuration built and every finished result checked
     before anything is written."""
-    if os.path.isfile(out):
-        raise ValueError(f"--out {out!r} is a file; expected a directory")
-    chosen = []
-    for seed in range(seeds):
-        for m in methods:
-            run_dir = os.path.join(out, "runs", f"{m}-seed{seed}")
-            cell = cellrun.Cell(m, seed, method_config(m, scale, seed, run_dir, trajectories, reward), run_dir)
-            done = cellrun.result_path(os.path.join(out, "results"), cell)
-            if os.path.exists(done):
-                cellrun.check_result_matches(done, cell)
-            chosen.append(cell)
-    return chosen
+    entries = [(m, seed) for seed in range(seeds) for m in methods]
+    return cellrun.planned_cells(out, entries,
+                                 lambda m, seed, run_dir: method_config(m, scale, seed, run_dir, trajectories, reward))
 
 
 # -- the RL trainer (the cells seam) ------------------------------------------------------------

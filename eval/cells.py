@@ -80,6 +80,23 @@ def check_result_matches(path: str, cell: Cell) -> None:
                          f"delete it or choose another --out")
 
 
+def planned_cells(out: str, entries, make_config) -> list[Cell]:
+    """The cells of an ablation or baseline table under `out`: one per (variant, seed) of
+    entries, configured by make_config(variant, seed, run_dir); every finished result checked
+    against the configuration asked for now (ValueError), before anything is written."""
+    if os.path.isfile(out):
+        raise ValueError(f"--out {out!r} is a file; expected a directory")
+    chosen = []
+    for variant, seed in entries:
+        run_dir = os.path.join(out, "runs", f"{variant}-seed{seed}")
+        cell = Cell(variant, seed, make_config(variant, seed, run_dir), run_dir)
+        done = result_path(os.path.join(out, "results"), cell)
+        if os.path.exists(done):
+            check_result_matches(done, cell)
+        chosen.append(cell)
+    return chosen
+
+
 def run_cell(cell: Cell, results_dir: str, trainer: Trainer, progress: bool = True, log=print) -> dict:
     """The cell's result: read if it is finished, else trained (resuming its run directory) and
     written atomically. {'stopped_by_signal': N} if a signal stopped the trainer early (nothing

@@ -157,7 +157,7 @@ def run_cell(policy_dir: str, goals, config_path: str, out_dir: str | None = Non
     from deploy.drivers.config import load_cell_config
     from deploy.goals import check_goals
     from deploy.hardware import MonotonicClock
-    from deploy.runner import Runner
+    from deploy.runner import Runner, RunnerConfig
     cfg = load_cell_config(config_path)
     if policy is None:
         from deploy.export import load_export
@@ -167,7 +167,7 @@ def run_cell(policy_dir: str, goals, config_path: str, out_dir: str | None = Non
     clock = MonotonicClock()
     cell = Cell(cfg, clock, contract)
     try:
-        runner = Runner(cell.robot, cell.tracker, clock, policy, contract, cell_runner_config(runner_config))
+        runner = Runner(cell.robot, cell.tracker, clock, policy, contract, runner_config or RunnerConfig())
         session = _Session(runner, cell, out_dir, throw_delay_s, finish_s)
         wall = time.perf_counter()
         # Each episode is saved as soon as it ends (run_episodes), so a crash loses none.
@@ -181,20 +181,6 @@ def run_cell(policy_dir: str, goals, config_path: str, out_dir: str | None = Non
         from ttmjx.world.files import write_json
         write_json(os.path.join(out_dir, "session.json"), out, indent=1)
     return out
-
-
-# The runner takes its tick's `now` before it reads the sensors; a driver thread that receives a
-# message in between stamps it (on the same clock) slightly later than that now. On a loaded
-# computer the gap reaches milliseconds, so the cell's future tolerance covers thread handover
-# (a clock error, e.g. a tracker offset wrong by more, is still caught).
-FUTURE_S = 0.02
-
-
-def cell_runner_config(config=None):
-    """The runner's config on a cell: future_s at least FUTURE_S."""
-    from deploy.runner import RunnerConfig
-    config = config or RunnerConfig()
-    return dataclasses.replace(config, future_s=max(config.future_s, FUTURE_S))
 
 
 class _Session:
