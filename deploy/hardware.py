@@ -34,6 +34,10 @@ class Robot(Protocol):
     def send(self, q: np.ndarray) -> None:
         """Command absolute joint position targets q [8]."""
 
+    # Optional: `fault() -> str | None`, the name of a device fault the drivers latched (motors
+    # off, a drive fault) or None; the runner reads it with every joint sample (robot_fault,
+    # HOLD). Robots without it report faults as non-finite joints only.
+
 
 @runtime_checkable
 class BallTracker(Protocol):

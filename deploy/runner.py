@@ -285,7 +285,17 @@ class Runner:
                 self.joints.add(t, q)
         if now - self.joints.newest_time > self.config.stale_s:
             faults |= FAULTS["joint_stale"]
-        return faults
+        return faults | self._robot_fault()
+
+    def _robot_fault(self) -> int:
+        """robot_fault if the robot's drivers report a device fault (hardware.Robot: optional
+        fault()); the reads that saw it are counted under `robot_fault:<name>` too."""
+        report = getattr(self.robot, "fault", None)
+        name = report() if report is not None else None
+        if not name:
+            return 0
+        self.fault_counts[f"robot_fault:{name}"] += 1
+        return FAULTS["robot_fault"]
 
     def _after_read(self, now: float) -> float:
         """The time a sensor read ended: what its samples' times are checked against (a driver

@@ -34,11 +34,13 @@ FAULTS = {
     "command_range": 1 << 11,     # the action was clamped to the joint ranges
     "command_step": 1 << 12,      # the action was limited by the speed limits
     "joint_mismatch": 1 << 13,    # settled feedback far from the last command (moving home)
+    "robot_fault": 1 << 14,       # the robot's own drivers report a device fault (Robot.fault())
 }
 # Faults that stop the episode (the runner enters HOLD). The others are handled in the tick.
 LATCHING = (FAULTS["policy_nonfinite"] | FAULTS["policy_error"] | FAULTS["joint_stale"]
             | FAULTS["joint_nonfinite"] | FAULTS["joint_jump"] | FAULTS["joint_out_of_range"]
-            | FAULTS["joint_time"] | FAULTS["ball_stale"] | FAULTS["joint_mismatch"])
+            | FAULTS["joint_time"] | FAULTS["ball_stale"] | FAULTS["joint_mismatch"]
+            | FAULTS["robot_fault"])
 
 
 def fault_names(bits: int) -> list[str]:

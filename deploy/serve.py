@@ -283,10 +283,17 @@ class Server:
     async def modbus_action(self, fc: int, start: int, address: int, count: int, regs: list,
                             values) -> ExcCodes | None:
         """pymodbus SimDevice action: faults, then a write sets the target, a read the actuals."""
-        f = self.faults
+        f, stopped = self.faults, False
         while f.after("modbus", "stop_s", time.monotonic()) and not self.stop.is_set():
+            stopped = True
             await asyncio.sleep(0.05)          # the drive stops answering
             f = self.faults
+        if stopped:
+            # A request the stopped drive held is lost, not carried out when the drive answers
+            # again: its writes were a session ago (a later session's homing saw the gantry
+            # leap to an old target).
+            self.counts["modbus_lost_in_stop"] += 1
+            return ExcCodes.GATEWAY_NO_RESPONSE
         if f.get("modbus", "delay_ms"):
             await asyncio.sleep(f.get("modbus", "delay_ms") / 1000.0)
         if self.rng.random() < f.get("modbus", "loss"):

@@ -129,8 +129,8 @@ def test_lossy_networks_are_logged_and_survived(served):
 @pytest.mark.parametrize("faults,runner_fault,driver_fault", [
     ("egm.nan=1", "joint_nonfinite", None),
     ("egm.range=1", "joint_out_of_range", None),
-    ("egm.motors_off_s=0", "joint_nonfinite", "egm_motors_off"),
-    ("modbus.fault_s=0", "joint_nonfinite", "gantry_drive_fault"),
+    ("egm.motors_off_s=0", "robot_fault", "egm_motors_off"),
+    ("modbus.fault_s=0", "robot_fault", "gantry_drive_fault"),
 ])
 def test_bad_feedback_holds_and_sends_nothing_from_it(served, faults, runner_fault, driver_fault):
     """From the first message the data are bad: HOLD before any episode, the reason logged,
@@ -140,6 +140,8 @@ def test_bad_feedback_holds_and_sends_nothing_from_it(served, faults, runner_fau
     summary, eps, stats = session(served, "bad_" + faults.split("=")[0], faults, goals=GOALS[:1])
     assert summary["mode"] == "hold" and runner_fault in summary["faults"], summary
     assert driver_fault is None or driver_fault in summary["driver_faults"], summary
+    # a device fault is named in the runner's faults (Robot.fault()), not only seen as bad joints
+    assert driver_fault is None or f"robot_fault:{driver_fault}" in summary["faults"], summary
     assert stats["counts"].get("egm_bad_replies", 0) == before
 
 

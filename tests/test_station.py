@@ -111,7 +111,7 @@ def test_robot_run_on_the_sim_station_end_to_end(tiny_export, tmp_path):
     assert out["self_test_error"] <= 1e-5 and out["policy_hash"].startswith("sha256:")
     assert set(out["metrics"]) >= {"within_30cm", "within_20cm", "mean_dist", "hit_rate"}
     latching = {"policy_nonfinite", "policy_error", "joint_stale", "joint_jump", "ball_stale",
-                "joint_out_of_range", "joint_time", "joint_nonfinite", "joint_mismatch"}
+                "joint_out_of_range", "joint_time", "joint_nonfinite", "joint_mismatch", "robot_fault"}
     assert not latching & set(out["faults"])
     assert json.load(open(os.path.join(logs, "session.json")))["episodes"] == 2
     contract = load_export(tiny_export)[1]

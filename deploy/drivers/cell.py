@@ -68,6 +68,11 @@ class CellRobot:
         self._last = (t, q)
         return self._last[0], q.copy()
 
+    def fault(self) -> str | None:
+        """The name of a latched device fault (arm: motors off, RAPID stopped; gantry: drive
+        fault), or None (deploy.hardware.Robot's optional fault())."""
+        return self.arm.latched or self.gantry.latched
+
     def send(self, q: np.ndarray) -> None:
         q = np.asarray(q, np.float64)
         if q.shape != (8,) or not np.all(np.isfinite(q)):

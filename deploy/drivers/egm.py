@@ -16,8 +16,8 @@ and, for one control period after a new target, the velocity that reaches it in 
 (zero after); before the runner's first target it holds the arm where the first valid feedback
 put it. A malformed message, an unknown message type, a message without six joints: dropped,
 logged, not answered (no command is sent on bad data). Motors off or RAPID not running: a
-latching fault (faults.LATCHING): `read()` then returns non-finite joints, which the runner
-treats as joint_nonfinite (HOLD). No message for stale_s: logged; the runner sees the newest
+latching fault (faults.LATCHING): `read()` then returns non-finite joints (joint_nonfinite)
+and the cell's Robot.fault() names it (robot_fault): the runner HOLDs. No message for stale_s: logged; the runner sees the newest
 sample go stale (joint_stale, HOLD).
 """
 from __future__ import annotations

@@ -12,8 +12,8 @@ import threading
 from collections import Counter
 
 # Faults after which the device must not be trusted until an operator looks (motors off, RAPID
-# stopped, a drive fault): the Robot reports non-finite joints until then, which the runner
-# treats as joint_nonfinite (a latching fault: HOLD).
+# stopped, a drive fault): the Robot names it (fault(): robot_fault) and reports non-finite
+# joints until then (joint_nonfinite); both hold the runner.
 LATCHING = frozenset({"egm_motors_off", "egm_rapid_stopped", "gantry_drive_fault"})
 MAX_EVENTS = 10_000     # kept entries (the counts go on past it)
 
