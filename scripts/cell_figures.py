@@ -16,9 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
-import socket
-import subprocess
 import sys
 import tempfile
 
@@ -28,14 +25,6 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 from deploy.drivers import config as cellconfig   # noqa: E402
-
-
-def free_port(kind) -> int:
-    s = socket.socket(socket.AF_INET, kind)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 def tick_timing(out_dir: str, n: int) -> dict:
@@ -99,35 +88,19 @@ def transport_delays(out_dir: str, n: int, arrivals: list, tol=(1e-6, 2e-6)) -> 
 
 def over_sockets(policy: str, goals, seed: int, faults: str, egm_hz: float, timing: str,
                  tmp: str, server_cpu: int | None = None) -> dict:
-    from deploy.drivers.cell import run_cell
-    cfg = cellconfig.CellConfig(
-        egm=cellconfig.EgmConfig(port=free_port(socket.SOCK_DGRAM)),
-        gantry=cellconfig.GantryConfig(port=free_port(socket.SOCK_STREAM)),
-        tracker=cellconfig.TrackerConfig(port=free_port(socket.SOCK_DGRAM)),
-        launcher=cellconfig.LauncherConfig(port=free_port(socket.SOCK_STREAM)))
+    from deploy.drivers.cell import Launcher, run_cell, serving
+    cfg = cellconfig.loopback_config()
     path = os.path.join(tmp, "cell.toml")
     with open(path, "w") as f:
         f.write(cellconfig.to_toml(cfg))
-    env = {**os.environ, "PYTHONPATH": ROOT}
-    proc = subprocess.Popen([sys.executable, "-m", "ttmjx.cli", "robot", "serve", "--config", path,
-                             "--policy", policy, "--seed", str(seed), "--faults", faults,
-                             "--egm-hz", str(egm_hz), "--timing", timing, "--json"], stdout=subprocess.PIPE, env=env, text=True,
-                            preexec_fn=None if server_cpu is None else lambda: os.sched_setaffinity(0, {server_cpu}))
     out = os.path.join(tmp, "episodes")
-    try:
-        assert '"ready": true' in proc.stdout.readline()
+    with serving(path, "--policy", policy, "--seed", str(seed), "--faults", faults, "--egm-hz", str(egm_hz),
+                 "--timing", timing, cpu=server_cpu):
         summary = run_cell(policy, goals, path, out)
-        from deploy.drivers.cell import Launcher
         launcher = Launcher(cfg.launcher)
         summary["server"] = launcher.call("stats")
         arrivals = launcher.call("arrivals")["arrivals"]
         launcher.close()
-    finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
     summary["timing"] = tick_timing(out, len(goals))
     summary["transport"] = transport_delays(out, len(goals), arrivals)
     return summary

@@ -9,7 +9,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -23,7 +22,7 @@ pytest.importorskip("pymodbus")
 
 from deploy.contract import Contract                                   # noqa: E402
 from deploy.drivers import config as cellconfig                        # noqa: E402
-from deploy.drivers.cell import Launcher, run_cell                     # noqa: E402
+from deploy.drivers.cell import Launcher, run_cell, serving            # noqa: E402
 from deploy.drivers.tracker import WIRE, pack_sample, unpack_sample    # noqa: E402
 from deploy.episode_log import load_episode                            # noqa: E402
 from deploy.fakes import FollowBallPolicy                              # noqa: E402
@@ -40,46 +39,17 @@ GOALS = [[0.7, 0.3], [0.5, -0.4]]
 QUICK = RunnerConfig(arm_timeout_s=2.0, home_timeout_s=5.0, stale_s=0.25)
 
 
-def free_port(kind) -> int:
-    s = socket.socket(socket.AF_INET, kind)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
-def cell_toml(path) -> cellconfig.CellConfig:
-    cfg = cellconfig.CellConfig(
-        egm=cellconfig.EgmConfig(port=free_port(socket.SOCK_DGRAM)),
-        gantry=cellconfig.GantryConfig(port=free_port(socket.SOCK_STREAM)),
-        tracker=cellconfig.TrackerConfig(port=free_port(socket.SOCK_DGRAM)),
-        launcher=cellconfig.LauncherConfig(port=free_port(socket.SOCK_STREAM)))
-    path.write_text(cellconfig.to_toml(cfg))
-    return cfg
-
-
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
-    """(config path, CellConfig, launcher) of a running `ttmjx robot serve`."""
+    """(config path, CellConfig, launcher, tmp) of a running `ttmjx robot serve`."""
     tmp = tmp_path_factory.mktemp("cell")
     path = tmp / "cell.toml"
-    cfg = cell_toml(path)
-    env = {**os.environ, "PYTHONPATH": ROOT, "JAX_PLATFORMS": "cpu"}
-    proc = subprocess.Popen([sys.executable, "-m", "ttmjx.cli", "robot", "serve", "--config", str(path),
-                             "--control-hz", "20", "--seed", "3", "--json"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)
-    try:
-        line = proc.stdout.readline()           # the server's ready line
-        assert '"ready": true' in line, proc.stderr.read()
+    cfg = cellconfig.loopback_config()
+    path.write_text(cellconfig.to_toml(cfg))
+    with serving(path, "--control-hz", "20", "--seed", "3", env={"JAX_PLATFORMS": "cpu"}):
         launcher = Launcher(cfg.launcher)
         yield str(path), cfg, launcher, tmp
         launcher.close()
-    finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
 
 
 def session(served, name, faults="", goals=GOALS, config=QUICK):
@@ -207,8 +177,7 @@ def test_bad_fault_specs_and_configs_name_the_value(tmp_path):
 
 def test_ports_in_use_and_unreachable_drive_are_one_line_errors(tmp_path):
     path = tmp_path / "cell.toml"
-    cfg = cell_toml(path)
-    cfg = dataclasses.replace(cfg, launcher=None)
+    cfg = dataclasses.replace(cellconfig.loopback_config(), launcher=None)
     path.write_text(cellconfig.to_toml(cfg))
     taken = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     taken.bind(("0.0.0.0", cfg.egm.port))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import socket
 import tomllib
 
 
@@ -162,3 +163,21 @@ def _toml_value(v) -> str:
     if isinstance(v, str):
         return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
     return repr(v)
+
+
+def free_port(kind: int) -> int:
+    """A port on 127.0.0.1 free now (socket.SOCK_DGRAM or SOCK_STREAM)."""
+    s = socket.socket(socket.AF_INET, kind)
+    try:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+    finally:
+        s.close()
+
+
+def loopback_config() -> CellConfig:
+    """A cell on this computer (a `serve` rehearsal): every port a free loopback port."""
+    return CellConfig(egm=EgmConfig(port=free_port(socket.SOCK_DGRAM)),
+                      gantry=GantryConfig(port=free_port(socket.SOCK_STREAM)),
+                      tracker=TrackerConfig(port=free_port(socket.SOCK_DGRAM)),
+                      launcher=LauncherConfig(port=free_port(socket.SOCK_STREAM)))
