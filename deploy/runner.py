@@ -62,7 +62,7 @@ class NumpyPolicy(Protocol):
 class RunnerConfig:
     """Bounds and tolerances of the runner (the contract holds rates and joint limits)."""
     stale_s: float = 0.1            # joint or ball data older than this -> hold
-    future_s: float = 0.005         # a sample stamped later than now + this is rejected
+    future_s: float = 0.005         # stamped later than its read ended + this: rejected
     jump_factor: float = 1.5        # feedback may move at most jump_factor * max_speed ...
     jump_tolerance: float = 0.02    # ... + this between two samples (m or rad)
     range_tolerance: float = 0.02   # feedback this far outside the ranges is a fault
@@ -103,18 +103,23 @@ class NoBallError(TimeoutError):
 
 @contextlib.contextmanager
 def _collector_paused():
-    """The cyclic garbage collector off (module docstring, "Collector"); re-entrant. The
-    episode's own garbage is freed by reference counting; cycles wait for the collection between episodes (run_episodes)."""
-    if not gc.isenabled():                  # an outer pause (or the caller's choice) stands
-        yield
+    """The cyclic garbage collector off (module docstring, "Collector"); yields whether this
+    call paused it (False inside an outer pause, or if the caller had switched it off: their
+    choice stands). The episode's own garbage is freed by reference counting; cycles wait for
+    the collection between episodes (run_episodes)."""
+    if not gc.isenabled():
+        yield False
         return
-    gc.freeze()         # what exists now is never traversed again (not collected first: that
+    froze = gc.get_freeze_count() == 0      # a caller's own freeze (serve's) is left as it is
+    if froze:
+        gc.freeze()     # what exists now is never traversed again (not collected first: that
     gc.disable()        # full pass is the pause avoided here, and the drivers already run)
     try:
-        yield
+        yield True
     finally:
         gc.enable()
-        gc.unfreeze()
+        if froze:
+            gc.unfreeze()
 
 
 def frame_of(joints: np.ndarray, ball: np.ndarray, goal: np.ndarray) -> np.ndarray:
@@ -242,7 +247,7 @@ class Runner:
         on_no_ball, a ball that never came (NoBallError) calls on_no_ball(i) and moves on to
         the next goal; without, it raises."""
         episodes = []
-        with _collector_paused():
+        with _collector_paused() as paused:
             for i, goal in enumerate(check_goals(goals)):
                 if self.mode == Mode.HOLD or not self.move_home(None if poses is None else poses[i]):
                     break
@@ -264,7 +269,8 @@ class Runner:
                 episodes.append(ep)
                 if self.mode == Mode.HOLD:
                     break
-                gc.collect()                # between episodes: only what the session made
+                if paused:
+                    gc.collect()            # between episodes: only what the session made
         return episodes
 
     # ------------------------------------------------------------------ inputs

@@ -550,6 +550,31 @@ def test_a_tracker_blackout_holds_within_the_staleness_bound():
     assert violations(runner, robot) == NO_VIOLATIONS
 
 
+def test_a_device_fault_the_robot_names_holds_with_good_joints():
+    """Robot.fault() (hardware.Robot's optional method: a driver's latched motors-off or drive
+    fault) holds the runner on robot_fault although the joints still read finite and in range;
+    no command leaves after it."""
+    class Faulting(FakeRobot):
+        t_fault = np.inf
+
+        def fault(self):
+            return "drive_fault" if self.clock.now() >= self.t_fault else None
+
+    clock = RecordingClock(start=10.0)
+    robot, tracker = Faulting(clock, CONTRACT), FakeTracker(clock)
+    runner = Runner(robot, tracker, clock, FollowBallPolicy(CONTRACT), CONTRACT)
+    assert runner.move_home()
+    tracker.throw_in(0.2)
+    robot.t_fault = clock.now() + 0.5
+    ep = runner.run_episode((0.7, 0.3))
+    assert runner.mode == Mode.HOLD and ep.meta["end"] == "hold: robot_fault", ep.meta["end"]
+    assert runner.fault_counts["robot_fault:drive_fault"] >= 1
+    assert np.all(np.isfinite(ep.extras["joint_q"][ep.extras["joint_ok"].astype(bool)]))
+    sent = ep.extras["t_sent"][np.isfinite(ep.extras["t_sent"])]
+    assert len(sent) and sent.max() < robot.t_fault
+    assert violations(runner, robot) == NO_VIOLATIONS
+
+
 @pytest.mark.parametrize("kind,faults", [
     ("jump", ("joint_jump", "joint_out_of_range")),   # a big jump may also leave the range
     ("nan", ("joint_nonfinite",)), ("future", ("joint_time",)), ("backwards", ("joint_time",)),

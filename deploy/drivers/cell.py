@@ -11,7 +11,8 @@ line instead, the arm interpolated between its messages), so the 100 Hz gantry d
 stamp by up to a poll (a 10 ms lag the policy, trained on feedback sampled with the arm, reads
 as a slower gantry). So that one fresh part never hides a silent one, a part whose newest
 sample is older than its stale_s freezes read() at the last sample it returned: the runner
-sees that sample go stale (joint_stale, HOLD).
+sees that sample go stale (joint_stale, HOLD). Since the joined time waits for the gantry's line,
+a gantry reading later than stale_s minus one poll period (90 ms by default) already holds.
 """
 from __future__ import annotations
 
@@ -68,6 +69,8 @@ class CellRobot:
         if t <= self._last[0]:
             return self._last[0], self._last[1].copy()
         q = np.empty(8)
+        # (t reaches before the arm's kept messages only at start-up: later a gantry that stale
+        # is caught above, config.MAX_STALE_S)
         q[GANTRY], q[ARM] = self.gantry.read_at(t), self.arm.read_at(t)
         self._last = (t, q)
         return self._last[0], q.copy()

@@ -11,6 +11,8 @@ import math
 import socket
 import tomllib
 
+MAX_STALE_S = 0.25          # s, the longest stale limit of a part (deploy/drivers/cell.py)
+
 
 @dataclasses.dataclass(frozen=True)
 class EgmConfig:
@@ -116,6 +118,10 @@ def _check(obj, where: str) -> None:
             raise ValueError(f"{where}.{f.name} = {v}: expected a register address 0..65533")
     if isinstance(obj, GantryConfig) and not 0 <= obj.device_id <= 247:
         raise ValueError(f"{where}.device_id = {obj.device_id}: expected 0..247")
+    if isinstance(obj, (GantryConfig, EgmConfig)) and obj.stale_s > MAX_STALE_S:
+        # the cell's Robot joins the arm's recent messages (0.25 s of them) to the gantry's
+        # reading: staler than that, a join would have no arm sample to read (drivers/cell.py)
+        raise ValueError(f"{where}.stale_s = {obj.stale_s}: expected at most {MAX_STALE_S} s")
 
 
 def cell_config_from_dict(doc: dict, where: str = "cell config") -> CellConfig:

@@ -3,22 +3,24 @@ ABB's protobuf messages, egm.proto).
 
 EGM's roles: the controller initiates. Once RAPID runs EGMRunJoint, the controller sends an
 EgmRobot message (feedback: joints in degrees, motor and RAPID state, a sequence number) every
-EGM cycle (4 ms: 250 Hz; the paper's cell ~240 Hz) to this computer's port, and expects one
-EgmSensor message in reply to each (planned joint positions in degrees, speedRef joint
-velocities in degrees/s) sent back to the address it came from. A controller that gets no
-reply for its comm timeout stops EGM, so replies come from a thread of their own, never from
-the control tick.
+EGM cycle (4 ms: 250 Hz; the paper's cell ~240 Hz) to this computer's port, and expects an
+EgmSensor message in reply (planned joint positions in degrees, speedRef joint velocities in
+degrees/s) sent back to the address it came from. A controller that gets no reply for its comm
+timeout stops EGM, so replies come from a thread of their own, never from the control tick.
 
-Each accepted message: stamped with the runner's clock at receipt, degrees to radians, its
-sequence number checked (a number not newer than the last is a duplicate or reordered message:
-dropped; a gap is logged with the count lost). The reply carries the runner's latest target
+Each message is checked: its sequence number (a number not newer than the last is a duplicate
+or reordered message: dropped; a gap is logged with the count lost), type, motor and RAPID
+state. The newest accepted one is kept: stamped with the runner's clock at receipt, degrees to
+radians, and answered. Messages that queued up behind a late thread (a stall of this process)
+are all checked, but only the newest is kept and answered: stamped at one receipt, the older
+ones would put old joints at a new time. The reply carries the runner's latest target
 and, for one control period after a new target, the velocity that reaches it in that period
 (zero after); before the runner's first target it holds the arm where the first valid feedback
 put it. A malformed message, an unknown message type, a message without six joints: dropped,
 logged, not answered (no command is sent on bad data). Motors off or RAPID not running: a
 latching fault (faults.LATCHING): `read()` then returns non-finite joints (joint_nonfinite)
-and the cell's Robot.fault() names it (robot_fault): the runner HOLDs. No message for stale_s: logged; the runner sees the newest
-sample go stale (joint_stale, HOLD).
+and the cell's Robot.fault() names it (robot_fault): the runner HOLDs. No message for stale_s:
+logged; the runner sees the newest sample go stale (joint_stale, HOLD).
 """
 from __future__ import annotations
 
@@ -129,14 +131,18 @@ class EgmArm:
         """Messages already waiting behind the one just received (this thread was late: a
         stall of this process). All stamped at this receipt, the older ones would put old
         joints at a new time (a false jump), so only the newest is kept."""
-        out = []
+        out, addr = [], self.egm.egm_addr       # the reply goes where the last message came from
         while True:
             try:
                 ok, state = self.egm.receive_from_robot(timeout=0)
             except DecodeError as e:
                 self.faults.add(self.clock.now(), "egm", "egm_malformed", f"protobuf: {e}")
                 continue
+            except OSError:                     # (closing): what was received is still answered
+                ok = False
             if not ok:
+                if self.egm.egm_addr is None:   # abb-robot-client forgets it on a receive error
+                    self.egm.egm_addr = addr
                 return out
             out.append(state)
             self.buffered += 1

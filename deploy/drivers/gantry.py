@@ -5,8 +5,11 @@ control tick, does every transaction: it writes each new position target as soon
 sets it (with the fixed positioning velocity and a toggled new-setpoint bit; a target leaves
 within a transaction, not up to a poll period late), and poll_hz times a second, on a schedule
 of its own, reads the actual positions and the status word; each reading is stamped with the
-runner's clock at receipt. The drive sees at most control_hz writes and poll_hz reads a second. A slow or lost transaction only delays the thread: the runner keeps ticking and sees
-the gantry's newest sample go stale (joint_stale, HOLD) if it lasts longer than stale_s.
+runner's clock at receipt; a reply a poll period later than the drive usually answers has its
+position dropped (gantry_late_reply: it cannot be placed in time), its status word still read.
+The drive sees at most control_hz writes and poll_hz reads a second. A slow or lost transaction
+only delays the thread: the runner keeps ticking and sees the gantry's newest sample go stale
+(joint_stale, HOLD) if it lasts longer than stale_s.
 
 The register map (config.Registers, one block of holding registers):
 
@@ -43,6 +46,7 @@ ENABLE, NEW_SETPOINT = 1, 2                 # control bits
 READY, FAULT, ACK = 1, 2, 4                 # status bits
 INT32 = ModbusTcpClient.DATATYPE.INT32
 HISTORY = 32                                # readings kept for read_at (0.32 s at 100 Hz)
+MAX_LATE_DROPS = 2                          # late replies dropped in a row (_late), at most
 
 
 def encode_int32(value: int, regs: Registers) -> list[int]:
@@ -79,6 +83,7 @@ class ModbusGantry:
         self._toggle = 0
         self.reads = self.writes = self.errors = 0
         self._rtts: collections.deque = collections.deque(maxlen=32)   # recent read round trips (s)
+        self._late_in_row = 0
         self._stop = threading.Event()
         self._wake = threading.Event()             # a new target (or close)
         self._thread = threading.Thread(target=self._loop, name="gantry", daemon=True)
@@ -163,28 +168,39 @@ class ModbusGantry:
         now = self.clock.now()
         if res.isError():
             raise ModbusException(f"read at {lo}: {res}")
-        rtt, usual = now - sent, (float(np.median(self._rtts)) if self._rtts else 0.0)
-        self._rtts.append(rtt)
-        if rtt > usual + 1.0 / self.cfg.poll_hz:
-            # The drive measured somewhere between the request and the receipt: a reply a poll
-            # period later than the drive's usual answer (a stall of the drive, the network or
-            # this process) cannot be placed in time; stamped at receipt it would put an old
-            # position at a new time (a false jump). The next poll follows at once.
-            self.faults.add(now, "gantry", "gantry_late_reply",
-                            f"{1000 * rtt:.1f} ms (usually {1000 * usual:.1f} ms)")
-            return
         w = res.registers
-        q = np.array([decode_int32(w[r.actual_x - lo:r.actual_x - lo + 2], r),
-                      decode_int32(w[r.actual_y - lo:r.actual_y - lo + 2], r)]) / r.counts_per_m
         status = w[r.status - lo]
         latched = "gantry_drive_fault" if status & FAULT or not status & READY else None
         if latched and not self.latched:
             self.faults.add(now, "gantry", latched, f"status word {status:#06x}")
+        if latched:
+            with self._lock:
+                self.latched = self.latched or latched
+        if self._late(now - sent, now):
+            return
+        q = np.array([decode_int32(w[r.actual_x - lo:r.actual_x - lo + 2], r),
+                      decode_int32(w[r.actual_y - lo:r.actual_y - lo + 2], r)]) / r.counts_per_m
         with self._lock:
             self.sample = (now, q)
             self.history.append(now, q)
             self.latched = self.latched or latched
         self.reads += 1
+
+    def _late(self, rtt: float, now: float) -> bool:
+        """Whether a read's position is dropped as late. The drive measured somewhere between
+        the request and the receipt: a reply a poll period later than its usual answer (the
+        median of recent round trips; a stall of the drive, the network or this process)
+        cannot be placed in time, and stamped at receipt it would put an old position at a new
+        time (a false jump). At most MAX_LATE_DROPS in a row: a drive that has become slower
+        for good is then the usual (its status word is read either way)."""
+        usual = float(np.median(self._rtts)) if self._rtts else rtt
+        self._rtts.append(rtt)
+        if rtt <= usual + 1.0 / self.cfg.poll_hz or self._late_in_row >= MAX_LATE_DROPS:
+            self._late_in_row = 0
+            return False
+        self._late_in_row += 1
+        self.faults.add(now, "gantry", "gantry_late_reply", f"{1000 * rtt:.1f} ms (usually {1000 * usual:.1f} ms)")
+        return True
 
     def _error(self, e: Exception) -> None:
         self.errors += 1

@@ -24,8 +24,9 @@ class SampleHistory:
 
     def at(self, t: float, follow_s: float) -> np.ndarray | None:
         """value [D] at time t: interpolated between the two samples around t; past the newest,
-        the line through the two newest followed at most follow_s, then held; before the
-        oldest kept, the oldest. None if there is no sample. The same t gives the same value."""
+        the line through the two newest followed at most follow_s, then held; before the oldest
+        kept, the oldest (at start-up, before a history has built up). None if there is no
+        sample. The same t gives the same value."""
         if not self.samples:
             return None
         ts = np.array([s[0] for s in self.samples])
