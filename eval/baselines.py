@@ -58,18 +58,22 @@ def goalseye_base(scale: str) -> RunConfig:
 
 
 def tiny_rl() -> dict:
-    """The RL settings of the tiny scale: 2 environments, batches of a few steps (CPU tests)."""
+    """The RL settings of the tiny scale: 2 environments, batches of a few steps, 3 curve points
+    where the budget divides into 2 epochs (CPU tests)."""
     return dict(ppo=agents.PPOConfig(num_envs=2, unroll_length=4, batch_size=2, num_minibatches=2,
                                      num_updates_per_batch=1, value_hidden=(16,)),
                 sac=agents.SACConfig(num_envs=2, batch_size=8, grad_updates_per_step=1, min_replay_size=16,
-                                     max_replay_size=4096, q_hidden=(16,)),
-                es=agents.ESConfig(population_size=1), num_evals=1, num_eval_envs=1)
+                                     max_replay_size=4096),
+                es=agents.ESConfig(population_size=1), num_evals=3, num_eval_envs=1)
 
 
 def method_config(method: str, scale: str, seed: int, run_dir: str, trajectories: int | None = None,
                   reward: RewardConfig = RewardConfig()):
     """The cell's configuration: a BaselineConfig (RL) or a RunConfig; ValueError naming the
-    method and the problem (a budget below one batch included)."""
+    method and the problem (a budget below one batch included). An RL cell's
+    run.total_trajectories is what brax runs exactly: the largest whole number of trajectories
+    not above the budget that its batches and epochs fill (agents.fit_budget; the budget asked
+    for is its requested_trajectories)."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {METHODS}")
     base = goalseye_base(scale)
@@ -80,7 +84,7 @@ def method_config(method: str, scale: str, seed: int, run_dir: str, trajectories
         if method in RL:
             run = agents.run_config(method, base)
             settings = tiny_rl() if scale == "tiny" else {"num_evals": 8}
-            return agents.BaselineConfig(method, run, reward=reward, **settings)
+            return agents.fit_budget(agents.BaselineConfig(method, run, reward=reward, **settings))
         overrides = {"gcsl": {"demos": 0, "pretrain_steps": 0, "preset": "gcsl"},
                      "lfp": {"practice": False, "demos": ablate.ALL_TRAJECTORIES,
                              "pretrain_steps": ablate.GOALSEYE_UPDATES, "preset": "lfp"},
@@ -111,21 +115,25 @@ def plan(methods: list[str], scale: str, seeds: int, out: str, trajectories: int
 # -- the RL trainer (the cells seam) ------------------------------------------------------------
 def rl_trainer(cfg: agents.BaselineConfig, progress: bool = True) -> cellrun.Outcome:
     """brax's trainer for cfg.method, a strict-metric curve point wherever it hands its policy
-    out, the policy saved as a checkpoint of cfg.run, then the cells' final evaluation of it."""
+    out (at 0 and after each of its epochs; x: brax's environment steps / horizon, which need
+    not be whole inside SAC's run), the policy saved as a checkpoint of cfg.run whose counter
+    is the trajectories brax ran, then the cells' final evaluation of it."""
     run = cfg.run
     backend = Backend(run.world, resolve_backend(run.backend))
+    h = run.world.horizon
     curve = []
 
     def on_policy(steps: int, params):
         m = evaluate_uniform(run.world, run.policy, params, backend, jax.random.PRNGKey(run.seed + 1),
                              run.eval_goals)
-        curve.append({"trajectories": steps // run.world.horizon, "updates": 0, "cache_size": 0, **m})
+        x = steps // h if steps % h == 0 else round(steps / h, 3)
+        curve.append({"trajectories": x, "env_steps": steps, "updates": 0, "cache_size": 0, **m})
         if progress:
-            log(f"[baseline] {cfg.method} {steps // run.world.horizon} trajectories: "
+            log(f"[baseline] {cfg.method} {x:,} trajectories: "
                 f"<=30cm {m['within_30cm']:.1%} hit {m['hit_rate']:.1%}", file=sys.stderr)
 
     params = agents.train(cfg, on_policy)
-    agents.save_policy(cfg, params, run.total_trajectories)
+    agents.save_policy(cfg, params, agents.schedule(cfg).trajectories)
     final, landings = cellrun.final_evaluation(run.run_dir)
     return cellrun.Outcome(True, 0, final, curve, landings)
 

@@ -1,9 +1,12 @@
 """RL baselines (issue #12): the brax environment's reward terms are what RewardConfig says on a
-scripted hit; brax's policy converts exactly into a GoalsEye framestack policy; and PPO, SAC and
-ES each train a few updates at the tiny scale through `ttmjx baseline`'s cells, leaving a
-checkpoint that `ttmjx eval` scores with the strict metric and `ttmjx export` exports."""
+scripted hit; brax's policy converts exactly into a GoalsEye framestack policy; the trajectory
+budget brax runs is the one recorded (never above the one asked for); and PPO, SAC and ES each
+train a few updates at the tiny scale through `ttmjx baseline`'s cells, with a learning curve of
+several points, leaving a checkpoint that `ttmjx eval` scores with the strict metric and
+`ttmjx export` exports."""
 import dataclasses
 import json
+import math
 import os
 
 import jax
@@ -112,26 +115,84 @@ def test_brax_policy_is_a_goalseye_framestack_policy(method):
     np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
 
 
+def brax_steps(method: str, cfg, num_timesteps: int, num_evals: int) -> int:
+    """Environment steps brax 0.14.2 runs, written out from its trainers (action_repeat 1, one
+    device), independently of agents.brax_env_steps."""
+    h, evals_after_init = cfg.run.world.horizon, max(num_evals - 1, 1)
+    if method == "ppo":    # ppo/train.py
+        env_step_per_training_step = cfg.ppo.batch_size * cfg.ppo.unroll_length * cfg.ppo.num_minibatches
+        num_training_steps_per_epoch = math.ceil(num_timesteps / (evals_after_init * env_step_per_training_step))
+        return evals_after_init * num_training_steps_per_epoch * env_step_per_training_step
+    if method == "sac":    # sac/train.py
+        num_envs = cfg.sac.num_envs
+        num_prefill_env_steps = -(-cfg.sac.min_replay_size // num_envs) * num_envs
+        num_training_steps_per_epoch = -(-(num_timesteps - num_prefill_env_steps) // (evals_after_init * num_envs))
+        return num_prefill_env_steps + evals_after_init * num_training_steps_per_epoch * num_envs
+    per_epoch = 2 * cfg.es.population_size * h   # es/train.py: epochs while steps < num_timesteps
+    return math.ceil(num_timesteps / per_epoch) * per_epoch
+
+
+def test_brax_runs_exactly_the_recorded_budget():
+    """brax rounds num_timesteps up to whole epochs (PPO asked for 120k ran 143,360 trajectories);
+    the schedule makes it run exactly the cell's total_trajectories: the largest whole number not
+    above the budget asked for."""
+    naive = baselines.method_config("ppo", "full", 0, "r", trajectories=120_000)
+    assert brax_steps("ppo", naive, 120_000 * 160, 8) == 143_360 * 160      # what the audit found
+    for method in agents.METHODS:
+        for budget in (4_097, 120_000, 123_457, 1_000_000, 35_000_000):
+            cfg = baselines.method_config(method, "full", 0, "r", trajectories=budget)
+            s, h = agents.schedule(cfg), cfg.run.world.horizon
+            ran = brax_steps(method, cfg, s.num_timesteps, s.num_evals)
+            assert ran == s.num_timesteps == cfg.run.total_trajectories * h == cfg.steps, (method, budget)
+            assert cfg.run.total_trajectories <= budget == cfg.requested_trajectories
+            # the largest: one more batch (with as many batches as make whole trajectories) is over
+            prefill, unit = agents._units(cfg)
+            period = h // math.gcd(unit, h)
+            assert prefill + (s.units + period) * unit > budget * h, (method, budget)
+            assert s.num_evals >= 2 and s.units % (s.num_evals - 1) == 0
+            assert agents.fit_budget(cfg) == cfg                             # fitted once for all
+    exact = baselines.method_config("sac", "full", 0, "r", trajectories=120_000)
+    assert exact.run.total_trajectories == 120_000
+    with pytest.raises(ValueError, match="below one batch"):
+        baselines.method_config("ppo", "full", 0, "r", trajectories=4_095)
+
+
+def test_sac_q_networks_are_the_policy_size():
+    """brax's make_sac_networks has one hidden size for both networks: no q_hidden to ignore."""
+    assert "q_hidden" not in {f.name for f in dataclasses.fields(agents.SACConfig)}
+    cfg = baselines.method_config("sac", "tiny", 0, "r", trajectories=2)
+    nets = agents.sac_networks(cfg)(WORLD.frame_stack * WORLD.obs_size, 8)
+    q = nets.q_network.init(jax.random.PRNGKey(0))["params"]
+    widths = {k.shape[-1] for k in jax.tree.leaves(q) if k.ndim == 2} - {1}
+    assert widths == {cfg.run.policy.hidden}
+
+
 @pytest.mark.parametrize("method", agents.METHODS)
 def test_trains_evaluates_and_exports(method, tmp_path):
     from deploy.export import export_checkpoint, load_export
     from eval.evaluate import evaluate_checkpoint
     from training.checkpoint import load_checkpoint
     out = str(tmp_path / "table")
-    summary = baselines.run([method], "tiny", 1, out, trajectories=2, progress=False)
+    n = 4 if method == "es" else 2    # ES: 2 episodes per epoch, 2 epochs
+    summary = baselines.run([method], "tiny", 1, out, trajectories=n, progress=False)
     result = json.load(open(os.path.join(out, "results", f"{method}-seed0.json")))
     assert result["final"]["goals"] == tiny().eval_goals and 0 <= result["final"]["hit_rate"] <= 1
-    assert result["curve"] and result["config"]["method"] == method
+    assert result["config"]["method"] == method and result["config"]["run"]["total_trajectories"] == n
+    # a point at 0, one between, one at the end: brax's own step counts, ending at the budget
+    xs = [p["trajectories"] for p in result["curve"]]
+    assert len(xs) == 3 and xs[0] == 0 < xs[1] < xs[2] == n, xs
+    assert result["curve"][-1]["env_steps"] == n * WORLD.horizon
     assert os.path.exists(summary["outputs"]["table"]) and method in open(summary["outputs"]["table"]).read()
     run_dir = os.path.join(out, "runs", f"{method}-seed0")
     loaded = load_checkpoint(run_dir)
-    assert loaded.cfg.preset == f"baseline-{method}" and int(loaded.ck.counters.trajectories) == 2
+    assert loaded.cfg.preset == f"baseline-{method}" and int(loaded.ck.counters.trajectories) == n
+    assert loaded.cfg.total_trajectories == n
     metrics = evaluate_checkpoint(run_dir, goals="4")
     assert metrics["goals"] == 4 and set(metrics) >= {"within_30cm", "within_20cm", "hit_rate"}
     policy, contract = load_export(export_checkpoint(run_dir, str(tmp_path / "export")))
     assert policy.spec.kind == "framestack" and policy.members == 1
     # the same cell again: skipped, same result
-    again = baselines.run([method], "tiny", 1, out, trajectories=2, progress=False)
+    again = baselines.run([method], "tiny", 1, out, trajectories=n, progress=False)
     assert again["cells_run"] == [f"{method}-seed0"]
     assert json.load(open(os.path.join(out, "results", f"{method}-seed0.json"))) == result
 

@@ -15,7 +15,16 @@ Configuration choices (the rest are brax's defaults):
 * `wrap_env_fn=wrap_fresh`: brax's AutoResetWrapper replays each environment's first throw and
   goal forever (training/baselines/env.py);
 * the trajectory budget N is N * horizon environment steps (GoalEnv's episodes are `horizon`
-  steps long), checked against one batch of the method before anything runs.
+  steps long). brax rounds num_timesteps UP to whole evaluation epochs (PPO asked for 120,000
+  trajectories ran 143,360), so `schedule` chooses brax's num_timesteps and num_evals such that
+  brax's own arithmetic (`brax_env_steps`, a copy of it) runs the largest whole number of
+  trajectories not above the budget, in epochs of equal length; `fit_budget` records that
+  number as the run's total_trajectories (cell JSON, checkpoint counter, curves) and the request
+  beside it. A budget below one batch of the method is refused before anything runs;
+* learning-curve points: PPO hands its policy to policy_params_fn at every epoch; SAC and ES
+  only to their evaluator (brax.training.acting.Evaluator.run_evaluation), just before each
+  progress_fn(step, metrics) call, so `_capturing_evaluations` wraps that method for the
+  trainer's call to keep the parameters it was given (the trainers themselves are unchanged).
 
 The conversion (`policy_params`): brax's policy MLP hidden_i -> MLPNet dense_i, its mean head ->
 head; brax's observation normalization (x - m) / s per input value folded into the first layer
@@ -24,8 +33,10 @@ denormalized with act_mean = home, act_std = reach (GoalEnv's affine action map)
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
+import math
 import time
 from typing import Literal
 
@@ -62,7 +73,12 @@ class PPOConfig:
 
 @dataclasses.dataclass(frozen=True)
 class SACConfig:
-    """brax.training.agents.sac.train arguments."""
+    """brax.training.agents.sac.train arguments.
+
+    No Q-network size: brax's make_sac_networks takes one hidden_layer_sizes for the policy and
+    the Q networks, so the Q networks are the policy's MLP size (the run's PolicyConfig.hidden x
+    layers). A separate size would need a network factory of our own; the field that claimed one
+    (q_hidden) was ignored and is gone."""
     num_envs: int = 256
     batch_size: int = 512
     grad_updates_per_step: int = 8
@@ -70,7 +86,6 @@ class SACConfig:
     max_replay_size: int = 2_000_000
     learning_rate: float = 3e-4
     discounting: float = 0.99
-    q_hidden: tuple = (256, 256)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,9 +110,15 @@ class BaselineConfig:
     sac: SACConfig = SACConfig()
     es: ESConfig = ESConfig()
     num_evals: int = 5
-    """Learning-curve points (strict metric on run.eval_goals goals where the trainer reports its policy)."""
+    """Learning-curve points asked for, the one at 0 trajectories included (strict metric on
+    run.eval_goals goals wherever brax hands its policy out). brax's epochs must divide the
+    budget's training steps exactly, so the number run is schedule(cfg).num_evals: the divisor
+    of the steps nearest num_evals - 1 (at most 4x it), plus one."""
     num_eval_envs: int = 128
     """brax's own evaluator (episode reward) environments."""
+    requested_trajectories: int | None = None
+    """The budget asked for, when `fit_budget` lowered run.total_trajectories to what brax runs
+    exactly (None: run.total_trajectories is the request)."""
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -111,23 +132,113 @@ class BaselineConfig:
         if self.run.total_trajectories < need:
             raise ValueError(f"trajectory budget {self.run.total_trajectories} is below one batch of "
                              f"{self.method} ({need} trajectories)")
+        if self.requested_trajectories is not None and self.requested_trajectories < self.run.total_trajectories:
+            raise ValueError(f"requested_trajectories={self.requested_trajectories} is below the run's "
+                             f"total_trajectories={self.run.total_trajectories}")
 
     @property
     def steps(self) -> int:
-        """brax num_timesteps: the budget in environment steps (episodes are `horizon` steps)."""
-        return self.run.total_trajectories * self.run.world.horizon
+        """brax num_timesteps: exactly the environment steps brax runs (schedule(self))."""
+        return schedule(self).num_timesteps
+
+
+# -- the budget in brax's units -----------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Schedule:
+    """How brax runs a trajectory budget: the arguments and what they consume."""
+    num_timesteps: int
+    """brax num_timesteps; brax runs exactly this many environment steps."""
+    num_evals: int
+    """brax num_evals: an evaluation at 0, then one after each of num_evals - 1 equal epochs."""
+    trajectories: int
+    """num_timesteps / horizon: the trajectories consumed (<= the budget)."""
+    units: int
+    """Training steps (PPO: one batch; SAC: one actor step of every environment) or ES epochs,
+    after SAC's replay prefill."""
+
+
+def _units(cfg: BaselineConfig) -> tuple[int, int]:
+    """(prefill, unit): brax's environment steps before training (SAC's replay prefill, rounded
+    up to whole actor steps as brax does) and per training step / ES epoch."""
+    h = cfg.run.world.horizon
+    if cfg.method == "ppo":   # ppo/train.py: env_step_per_training_step (action_repeat 1)
+        p = cfg.ppo
+        return 0, p.batch_size * p.unroll_length * p.num_minibatches
+    if cfg.method == "sac":   # sac/train.py: num_prefill_env_steps, env_steps_per_actor_step
+        s = cfg.sac
+        return -(-s.min_replay_size // s.num_envs) * s.num_envs, s.num_envs
+    return 0, 2 * cfg.es.population_size * h   # es/train.py: 2 * population episodes of h steps
+
+
+def brax_env_steps(cfg: BaselineConfig, num_timesteps: int, num_evals: int) -> int:
+    """The environment steps brax 0.14.2's trainer for cfg.method runs when called with
+    (num_timesteps, num_evals), from its own arithmetic (action_repeat 1, one device):
+
+        ppo/train.py  num_training_steps_per_epoch = ceil(T / (max(E - 1, 1) * unit)); runs
+                      max(E - 1, 1) epochs of it (num_resets_per_eval 0)
+        sac/train.py  prefill, then max(E - 1, 1) epochs of ceil((T - prefill) / (max(E - 1, 1)
+                      * num_envs)) actor steps
+        es/train.py   whole epochs of 2 * population_size episodes while steps < T (an episode
+                      is `horizon` steps: RewardConfig.end_at_landing False)"""
+    prefill, unit = _units(cfg)
+    epochs = max(num_evals - 1, 1)
+    if cfg.method == "es":
+        return -(-num_timesteps // unit) * unit
+    return prefill + epochs * -(-(num_timesteps - prefill) // (epochs * unit)) * unit
+
+
+def _valid_units(cfg: BaselineConfig) -> tuple[int, int]:
+    """(first, period): the unit counts n >= 1 with (prefill + n * unit) a whole number of
+    episodes are first, first + period, ...; ValueError if there are none."""
+    h = cfg.run.world.horizon
+    prefill, unit = _units(cfg)
+    period = h // math.gcd(unit, h)
+    first = next((n for n in range(1, period + 1) if (prefill + n * unit) % h == 0), None)
+    if first is None:
+        raise ValueError(f"{cfg.method}: no number of its batches of {unit} environment steps after a prefill "
+                         f"of {prefill} is a whole number of {h}-step trajectories; change its batch settings")
+    return first, period
+
+
+def _epochs(units: int, target: int) -> int:
+    """The divisor of `units` (epochs of equal length) nearest `target` in ratio (ties: the
+    larger), at most 4 x target."""
+    divisors = [d for d in range(1, min(units, 4 * target) + 1) if units % d == 0]
+    return min(divisors, key=lambda d: (abs(math.log(d / target)), -d))
+
+
+def schedule(cfg: BaselineConfig, trajectories: int | None = None) -> Schedule:
+    """brax's (num_timesteps, num_evals) for a budget (default: cfg.run.total_trajectories):
+    the largest whole number of trajectories not above it that brax runs exactly, in the number
+    of equal epochs nearest cfg.num_evals - 1 that divides it. ValueError below one batch."""
+    n = cfg.run.total_trajectories if trajectories is None else trajectories
+    h = cfg.run.world.horizon
+    prefill, unit = _units(cfg)
+    first, period = _valid_units(cfg)
+    most = (n * h - prefill) // unit
+    if most < first:
+        raise ValueError(f"trajectory budget {n} is below one batch of {cfg.method} "
+                         f"({(prefill + first * unit) // h} trajectories)")
+    units = first + (most - first) // period * period
+    epochs = _epochs(units, max(cfg.num_evals - 1, 1))
+    steps = prefill + units * unit
+    assert brax_env_steps(cfg, steps, epochs + 1) == steps
+    return Schedule(num_timesteps=steps, num_evals=epochs + 1, trajectories=steps // h, units=units)
 
 
 def batch_trajectories(cfg: BaselineConfig) -> int:
     """Trajectories of one batch (one update) of the method: the smallest budget that trains."""
-    h = cfg.run.world.horizon
-    if cfg.method == "ppo":
-        p = cfg.ppo
-        return -(-p.batch_size * p.num_minibatches * p.unroll_length // h)
-    if cfg.method == "sac":
-        s = cfg.sac
-        return -(-(s.min_replay_size + s.num_envs) // h)
-    return 2 * cfg.es.population_size
+    prefill, unit = _units(cfg)
+    return (prefill + _valid_units(cfg)[0] * unit) // cfg.run.world.horizon
+
+
+def fit_budget(cfg: BaselineConfig) -> BaselineConfig:
+    """cfg with run.total_trajectories = the trajectories brax runs (schedule) and the budget
+    asked for in requested_trajectories, so the cell's JSON, the checkpoint's config and counter
+    and the curve all hold what was consumed."""
+    s = schedule(cfg)
+    return dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, total_trajectories=s.trajectories),
+                               requested_trajectories=cfg.requested_trajectories or cfg.run.total_trajectories)
 
 
 # -- brax networks -----------------------------------------------------------------------------
@@ -144,7 +255,7 @@ def ppo_networks(cfg: BaselineConfig):
 
 def sac_networks(cfg: BaselineConfig):
     from brax.training.agents.sac import networks
-    # One hidden_layer_sizes for the policy and the Q networks in brax: the policy's size wins.
+    # One hidden_layer_sizes for the policy and the Q networks in brax (SACConfig's docstring).
     return functools.partial(networks.make_sac_networks, hidden_layer_sizes=_hidden(cfg),
                              activation=linen.relu, distribution_type="normal")
 
@@ -175,8 +286,6 @@ def brax_compat():
     """The one patch: brax 0.14.2's PPO and SAC call jax.device_put_replicated, which JAX 0.10
     removed (it raises AttributeError). Installed for the trainer's call only, as what it did: a
     copy per device along a new leading axis (brax pmaps over that axis)."""
-    import contextlib
-
     @contextlib.contextmanager
     def patched():
         try:
@@ -193,12 +302,32 @@ def brax_compat():
     return patched()
 
 
-def train(cfg: BaselineConfig, on_policy=None, progress=None):
-    """Run brax's trainer; returns (PolicyParams of the final policy, curve rows).
+@contextlib.contextmanager
+def _capturing_evaluations():
+    """Yields a list that receives the parameters brax's Evaluator.run_evaluation is called
+    with, wrapped for the trainer's call only. SAC and ES hand their policy to nothing else, and
+    call it just before each progress_fn(step, metrics): progress_fn then finds the policy of
+    that step at the list's end."""
+    from brax.training import acting
+    seen, original = [], acting.Evaluator.run_evaluation
 
-    on_policy(env_steps, PolicyParams) is called where the trainer hands its policy out (PPO: at
-    every evaluation point; SAC and ES: at the end only); progress(env_steps, metrics) gets
-    brax's own metrics (its evaluator's episode reward)."""
+    def run_evaluation(self, policy_params, *args, **kwargs):
+        seen.append(policy_params)
+        return original(self, policy_params, *args, **kwargs)
+    acting.Evaluator.run_evaluation = run_evaluation
+    try:
+        yield seen
+    finally:
+        acting.Evaluator.run_evaluation = original
+
+
+def train(cfg: BaselineConfig, on_policy=None, progress=None):
+    """Run brax's trainer on schedule(cfg); returns the final policy as PolicyParams.
+
+    on_policy(env_steps, PolicyParams) is called at every learning-curve point (brax's step 0
+    and the end of each of its epochs; env_steps is brax's own count, the last one exactly
+    schedule(cfg).num_timesteps); progress(env_steps, metrics) gets brax's own metrics (its
+    evaluator's episode reward)."""
     with brax_compat():
         return _train(cfg, on_policy, progress)
 
@@ -206,38 +335,53 @@ def train(cfg: BaselineConfig, on_policy=None, progress=None):
 def _train(cfg: BaselineConfig, on_policy=None, progress=None):
     env = GoalEnv(cfg.run.world, cfg.reward)
     h = cfg.run.world.horizon
-    common = dict(environment=env, num_timesteps=cfg.steps, episode_length=h, wrap_env_fn=wrap_fresh,
-                  normalize_observations=True, seed=cfg.run.seed, num_evals=cfg.num_evals,
-                  num_eval_envs=cfg.num_eval_envs, deterministic_eval=True,
-                  progress_fn=progress or (lambda *a: None))
-    if cfg.method == "ppo":
-        from brax.training.agents.ppo import train as ppo
-        p = cfg.ppo
+    sched = schedule(cfg)
+    steps_seen = []
 
-        def params_fn(step, make_policy, params):
-            if on_policy is not None:
-                on_policy(int(step), policy_params(cfg, params[0], params[1]))
-        _, params, _ = ppo.train(**common, num_envs=p.num_envs, unroll_length=p.unroll_length,
-                                 batch_size=p.batch_size, num_minibatches=p.num_minibatches,
-                                 num_updates_per_batch=p.num_updates_per_batch, learning_rate=p.learning_rate,
-                                 entropy_cost=p.entropy_cost, discounting=p.discounting,
-                                 clipping_epsilon=p.clipping_epsilon, network_factory=ppo_networks(cfg),
-                                 policy_params_fn=params_fn, run_evals=cfg.num_evals > 1)
-    elif cfg.method == "sac":
-        from brax.training.agents.sac import train as sac
-        s = cfg.sac
-        _, params, _ = sac.train(**common, num_envs=s.num_envs, batch_size=s.batch_size,
-                                 grad_updates_per_step=s.grad_updates_per_step, min_replay_size=s.min_replay_size,
-                                 max_replay_size=s.max_replay_size, learning_rate=s.learning_rate,
-                                 discounting=s.discounting, network_factory=sac_networks(cfg))
-    else:
-        from brax.training.agents.es import train as es
-        e = cfg.es
-        _, params, _ = es.train(**common, population_size=e.population_size, perturbation_std=e.perturbation_std,
-                                learning_rate=e.learning_rate, network_factory=es_networks(cfg))
+    def point(step, normalizer, policy):
+        steps_seen.append(int(step))
+        if on_policy is not None:
+            on_policy(int(step), policy_params(cfg, normalizer, policy))
+
+    with contextlib.ExitStack() as stack:
+        evaluated = stack.enter_context(_capturing_evaluations()) if cfg.method != "ppo" else None
+
+        def progress_fn(step, metrics):
+            if evaluated:   # SAC, ES: the policy their evaluator just scored
+                point(step, *evaluated.pop()[:2])
+            if progress is not None:
+                progress(step, metrics)
+
+        common = dict(environment=env, num_timesteps=sched.num_timesteps, episode_length=h, wrap_env_fn=wrap_fresh,
+                      normalize_observations=True, seed=cfg.run.seed, num_evals=sched.num_evals,
+                      num_eval_envs=cfg.num_eval_envs, deterministic_eval=True, progress_fn=progress_fn)
+        if cfg.method == "ppo":
+            from brax.training.agents.ppo import train as ppo
+            p = cfg.ppo
+            _, params, _ = ppo.train(**common, num_envs=p.num_envs, unroll_length=p.unroll_length,
+                                     batch_size=p.batch_size, num_minibatches=p.num_minibatches,
+                                     num_updates_per_batch=p.num_updates_per_batch, learning_rate=p.learning_rate,
+                                     entropy_cost=p.entropy_cost, discounting=p.discounting,
+                                     clipping_epsilon=p.clipping_epsilon, network_factory=ppo_networks(cfg),
+                                     policy_params_fn=lambda step, _, params: point(step, params[0], params[1]))
+        elif cfg.method == "sac":
+            from brax.training.agents.sac import train as sac
+            s = cfg.sac
+            _, params, _ = sac.train(**common, num_envs=s.num_envs, batch_size=s.batch_size,
+                                     grad_updates_per_step=s.grad_updates_per_step, min_replay_size=s.min_replay_size,
+                                     max_replay_size=s.max_replay_size, learning_rate=s.learning_rate,
+                                     discounting=s.discounting, network_factory=sac_networks(cfg))
+        else:
+            from brax.training.agents.es import train as es
+            e = cfg.es
+            _, params, _ = es.train(**common, population_size=e.population_size, perturbation_std=e.perturbation_std,
+                                    learning_rate=e.learning_rate, network_factory=es_networks(cfg))
     final = policy_params(cfg, params[0], params[1])
-    if on_policy is not None and cfg.method != "ppo":
-        on_policy(cfg.steps, final)
+    ran = steps_seen[-1] if steps_seen else None
+    if ran != sched.num_timesteps and not cfg.reward.end_at_landing:
+        # (end_at_landing: ES counts the steps of episodes that ended early as none)
+        raise RuntimeError(f"brax's {cfg.method} ran {ran} environment steps; schedule() expected "
+                           f"{sched.num_timesteps} (has brax's arithmetic changed? see brax_env_steps)")
     return final
 
 
