@@ -23,7 +23,7 @@ joint rate, latency and jitter), and the tracker stream its ball samples as they
 
 Faults (`--faults`, or the launcher's `faults` command; FAULT_KINDS): per stream (egm, tracker,
 modbus) `stream.kind=value`, comma separated, e.g. `egm.loss=0.05,modbus.delay_ms=10`. Times
-(`stop_s`, `motors_off_s`, `fault_s`) count from when the faults were set.
+(`stop_s`, `motors_off_s`, `rapid_stopped_s`, `fault_s`) count from when the faults were set.
 """
 from __future__ import annotations
 
@@ -48,7 +48,7 @@ from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from deploy.drivers.config import CellConfig
-from deploy.drivers.egm import DATA, MOTORS_ON, RAPID_RUNNING
+from deploy.drivers.egm import DATA, MOTORS_ON, RAPID_RUNNING, RAPID_STOPPED
 from deploy.drivers.gantry import ACK, ENABLE, FAULT, NEW_SETPOINT, READY, decode_int32, encode_int32
 from deploy.drivers.tracker import pack_sample
 from deploy.hardware import MonotonicClock
@@ -58,7 +58,7 @@ ARRIVALS_KEPT = 100_000         # new targets remembered for the `arrivals` comm
 # What each stream's faults may name: probabilities per message, delays in ms, times in s.
 FAULT_KINDS = {
     "egm": ("loss", "delay_ms", "reorder", "duplicate", "malformed", "stop_s", "nan", "range",
-            "msgtype", "motors_off_s"),
+            "msgtype", "motors_off_s", "rapid_stopped_s"),
     "tracker": ("loss", "delay_ms", "reorder", "duplicate", "malformed", "stop_s", "future"),
     "modbus": ("loss", "delay_ms", "stop_s", "fault_s"),
 }
@@ -234,7 +234,8 @@ class Server:
         m.planned.joints.joints.extend(np.rad2deg(self.target[2:8]).tolist())
         motors_off = f.after("egm", "motors_off_s", now)
         m.motorState.state = egm_pb2.EgmMotorState.MOTORS_OFF if motors_off else MOTORS_ON
-        m.rapidExecState.state = RAPID_RUNNING
+        # RAPID stopped (a program stop or an error on the controller) while motors stay on
+        m.rapidExecState.state = RAPID_STOPPED if f.after("egm", "rapid_stopped_s", now) else RAPID_RUNNING
         self.egm_out.send(m.SerializeToString(), f, now)
 
     def _receive_egm(self) -> None:

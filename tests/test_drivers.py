@@ -115,6 +115,7 @@ def test_lossy_networks_are_logged_and_survived(served):
     ("egm.nan=1", "joint_nonfinite", None),
     ("egm.range=1", "joint_out_of_range", None),
     ("egm.motors_off_s=0", "robot_fault", "egm_motors_off"),
+    ("egm.rapid_stopped_s=0", "robot_fault", "egm_rapid_stopped"),
     ("modbus.fault_s=0", "robot_fault", "gantry_drive_fault"),
 ])
 def test_bad_feedback_holds_and_sends_nothing_from_it(served, faults, runner_fault, driver_fault):

@@ -42,6 +42,7 @@ HISTORY = 64                    # messages kept for read_at (0.26 s at 250 Hz)
 DATA = egm_pb2.EgmHeader.MessageType.Value("MSGTYPE_DATA")
 MOTORS_ON = egm_pb2.EgmMotorState.MotorStateType.Value("MOTORS_ON")
 RAPID_RUNNING = egm_pb2.EgmRapidCtrlExecState.RapidCtrlExecStateType.Value("RAPID_RUNNING")
+RAPID_STOPPED = egm_pb2.EgmRapidCtrlExecState.RapidCtrlExecStateType.Value("RAPID_STOPPED")
 
 
 def open_egm(cfg: EgmConfig) -> EGM:
