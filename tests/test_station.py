@@ -176,3 +176,22 @@ def test_ttmjx_robot_run_cli(tiny_export, tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["robot", "run", "--policy", str(tmp_path), "--station", "sim", "--goals", "0.7,0.3"])
     assert "not a policy export" in capsys.readouterr().err
+
+
+def test_robot_sweep_plays_every_point_and_its_zero_point_is_the_plain_run(tiny_export, tmp_path):
+    """`ttmjx robot sweep`: both series at every added latency on the same goals and throws,
+    saved as JSON and PNG; +0 ms is exactly the robot run at the profile (same seed)."""
+    from deploy.station import TIMING
+    from deploy.sweep import latency_sweep, sweep_table
+    goals = np.array([[0.7, 0.3], [0.4, -0.5]])
+    out = latency_sweep(tiny_export, goals, str(tmp_path / "sweep"), [0, 50], seed=1)
+    assert [(p["series"], p["added_ms"]) for p in out["points"]] == [
+        ("ball", 0.0), ("ball", 50.0), ("action", 0.0), ("action", 50.0)]
+    assert all(p["episodes"] == len(goals) for p in out["points"])
+    saved = json.load(open(tmp_path / "sweep" / "sweep.json"))
+    assert [p["added_ms"] for p in saved["points"]] == [0.0, 50.0, 0.0, 50.0]
+    assert open(tmp_path / "sweep" / "sweep.png", "rb").read(8) == b"\x89PNG\r\n\x1a\n"
+    assert sweep_table(out).count("\n") == 1 + len(out["points"])
+    plain = run_sim(tiny_export, goals, None, seed=1, charge_compute=False, timing=TIMING["nominal"])
+    for k in ("within_30cm", "within_20cm", "hit_rate"):
+        assert out["points"][0][k] == out["points"][2][k] == plain["metrics"][k], k
