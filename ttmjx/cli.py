@@ -517,6 +517,7 @@ def ablate(a: AblateArgs) -> None:
         print("\n".join(ablations.status(out, a.name, a.seeds)))
         return
     command = " ".join(["ttmjx ablate", a.name, "--scale", scale, "--seeds", str(a.seeds)]
+                       + (["--cells", a.cells] if a.cells else [])
                        + (["--trajectories", str(a.trajectories)] if a.trajectories else [])
                        + (["--out", a.out] if a.out else []))
     if a.report:
