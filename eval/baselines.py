@@ -133,7 +133,7 @@ def rl_trainer(cfg: agents.BaselineConfig, progress: bool = True) -> cellrun.Out
                 f"<=30cm {m['within_30cm']:.1%} hit {m['hit_rate']:.1%}", file=sys.stderr)
 
     params = agents.train(cfg, on_policy)
-    agents.save_policy(cfg, params, agents.schedule(cfg).trajectories)
+    agents.save_policy(cfg, params, run.total_trajectories)     # method_config fitted it to what brax ran
     final, landings = cellrun.final_evaluation(run.run_dir)
     return cellrun.Outcome(True, 0, final, curve, landings)
 
