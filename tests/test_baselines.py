@@ -168,13 +168,23 @@ def test_sac_q_networks_are_the_policy_size():
 
 
 @pytest.mark.parametrize("method", agents.METHODS)
-def test_trains_evaluates_and_exports(method, tmp_path):
+def test_trains_evaluates_and_exports(method, tmp_path, monkeypatch):
+    from brax.training import acting
+
     from deploy.export import export_checkpoint, load_export
     from eval.evaluate import evaluate_checkpoint
     from training.checkpoint import load_checkpoint
+    evaluators, init = [], acting.Evaluator.__init__
+
+    def recording_init(self, *args, **kwargs):
+        evaluators.append(self)
+        init(self, *args, **kwargs)
+    monkeypatch.setattr(acting.Evaluator, "__init__", recording_init)
     out = str(tmp_path / "table")
     n = 4 if method == "es" else 2    # ES: 2 episodes per epoch, 2 epochs
     summary = baselines.run([method], "tiny", 1, out, trajectories=n, progress=False)
+    # brax's evaluator ran at each of the 3 curve points on one compiled unroll (agents._plain)
+    assert len(evaluators) == 1 and evaluators[0]._generate_eval_unroll._cache_size() == 1
     result = json.load(open(os.path.join(out, "results", f"{method}-seed0.json")))
     assert result["final"]["goals"] == tiny().eval_goals and 0 <= result["final"]["hit_rate"] <= 1
     assert result["config"]["method"] == method and result["config"]["run"]["total_trajectories"] == n
