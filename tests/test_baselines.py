@@ -157,6 +157,18 @@ def test_brax_runs_exactly_the_recorded_budget():
         baselines.method_config("ppo", "full", 0, "r", trajectories=4_095)
 
 
+def test_replicated_state_is_placed_as_brax_pmap_places_its_outputs():
+    """brax_compat's device_put_replicated: a copy per device, placed exactly as the pmapped
+    training step returns its state, so that step compiles for one placement only."""
+    x = {"w": jnp.arange(6.0).reshape(2, 3), "count": jnp.int32(4), "eps": 0.01}
+    devices = jax.local_devices()
+    rep = agents._replicated(x, devices)
+    out = jax.pmap(lambda t: t, axis_name=agents.PMAP_AXIS)(rep)
+    for r, o, a in zip(jax.tree.leaves(rep), jax.tree.leaves(out), jax.tree.leaves(x)):
+        assert r.shape == (len(devices),) + np.shape(a) and r.sharding == o.sharding
+        np.testing.assert_array_equal(np.asarray(r), np.stack([np.asarray(a, r.dtype)] * len(devices)))
+
+
 def test_sac_q_networks_are_the_policy_size():
     """brax's make_sac_networks has one hidden size for both networks: no q_hidden to ignore."""
     assert "q_hidden" not in {f.name for f in dataclasses.fields(agents.SACConfig)}

@@ -279,9 +279,18 @@ def es_networks(cfg: BaselineConfig):
 
 
 # -- training ----------------------------------------------------------------------------------
+PMAP_AXIS = "i"   # brax's _PMAP_AXIS_NAME in ppo/train.py and sac/train.py
+
+
 def _replicated(x, devices):
-    """What jax.device_put_replicated did: x with a leading axis over `devices`, one copy on each."""
-    return jax.tree.map(lambda a: jnp.stack([jnp.asarray(a)] * len(devices)), x)
+    """What jax.device_put_replicated did: x with a leading axis over `devices`, one copy on each,
+    placed as JAX 0.10's pmap places its own outputs (NamedSharding over a mesh of brax's axis
+    name), so brax's pmapped training step sees one input placement and compiles once: stacked
+    on one device it compiled twice, for the first call and for every later one (measured: 2 x
+    ~24 s of the tiny PPO cell on a 2-core CPU)."""
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+    place = NamedSharding(Mesh(np.asarray(devices), (PMAP_AXIS,)), PartitionSpec(PMAP_AXIS))
+    return jax.tree.map(lambda a: jax.device_put(jnp.stack([jnp.asarray(a)] * len(devices)), place), x)
 
 
 def brax_compat():
