@@ -159,13 +159,16 @@ def test_brax_runs_exactly_the_recorded_budget():
 
 def test_replicated_state_is_placed_as_brax_pmap_places_its_outputs():
     """brax_compat's device_put_replicated: a copy per device, placed exactly as the pmapped
-    training step returns its state, so that step compiles for one placement only."""
-    x = {"w": jnp.arange(6.0).reshape(2, 3), "count": jnp.int32(4), "eps": 0.01}
+    training step returns its state, and strongly typed as it returns it, so that step compiles
+    for one input type only."""
+    x = {"w": jnp.arange(6.0).reshape(2, 3), "count": jnp.int32(4), "eps": 0.01, "std": jnp.asarray(0.5)}
+    assert jax.typeof(x["std"]).weak_type     # as brax's initial std_param is
     devices = jax.local_devices()
     rep = agents._replicated(x, devices)
     out = jax.pmap(lambda t: t, axis_name=agents.PMAP_AXIS)(rep)
     for r, o, a in zip(jax.tree.leaves(rep), jax.tree.leaves(out), jax.tree.leaves(x)):
         assert r.shape == (len(devices),) + np.shape(a) and r.sharding == o.sharding
+        assert jax.typeof(r) == jax.typeof(o) and not jax.typeof(r).weak_type
         np.testing.assert_array_equal(np.asarray(r), np.stack([np.asarray(a, r.dtype)] * len(devices)))
 
 
