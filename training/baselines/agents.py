@@ -294,7 +294,7 @@ def _replicated(x, devices):
 
     def replicate(a):
         a = jnp.asarray(a)
-        return jax.device_put(jnp.stack([jnp.asarray(a, dtype=a.dtype)] * len(devices)), place)
+        return jax.device_put(jnp.stack([a] * len(devices)).astype(a.dtype), place)   # astype: not weak
     return jax.tree.map(replicate, x)
 
 
@@ -326,10 +326,12 @@ def _plain(tree):
     compiled its evaluation unroll (the environment's whole episode) three times per run, for
     (initial state, initial params), (initial state, trained params) and (unrolled state,
     trained params). Measured on the tiny PPO cell on a 2-core CPU: 3 compiles of ~18 s in a
-    ~170 s cell."""
+    ~170 s cell (`JAX_LOG_COMPILES=1 ttmjx baseline ppo --scale tiny --trajectories 2 --out DIR`
+    logs each compile; docs/RESULTS.md). The environment state too: with plain parameters alone
+    the unroll still compiled twice (tests/test_baselines.py counts one)."""
     dev = jax.devices()[0]
 
-    def plain(x):   # through the host: a few MB at each evaluation, against a compile
+    def plain(x):   # through the host: the weights and the eval state, once per evaluation
         if isinstance(x, jax.Array) and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
             return x
         if isinstance(x, (jax.Array, np.ndarray, np.generic, float, int)):   # ES: a Python float std_eps
