@@ -82,12 +82,35 @@ def goal_set_run(world: World, pcfg: PolicyConfig, params, backend: Backend, key
     return goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent), tr
 
 
+def uniform_runs(world: World, pcfg: PolicyConfig, params, backend: Backend, keys, n_goals: int = 200,
+                 members: int | None = None) -> tuple[list[dict], Trajectories]:
+    """`uniform_run` of S independent runs at once: params leaves [S, ...], keys [S] ->
+    ([goal_metrics] per run, Trajectories [S, G]); run s sees the goals and throws that
+    uniform_run(keys[s]) draws."""
+    split = jax.vmap(jax.random.split)
+    k_goal, k_run = jax.numpy.moveaxis(split(keys), 1, 0)
+    goals = jax.vmap(lambda k: uniform_goals(k, n_goals, world.table))(k_goal)
+    goals = np.asarray(goals, np.float32)[:, padded(np.arange(n_goals), members)]
+    k_throw, k_roll = jax.numpy.moveaxis(split(k_run), 1, 0)
+    th = jax.vmap(lambda k: thrower.sample_throws(k, world, goals.shape[1]))(k_throw)
+    tr = backend.rollout_seeds(make_policy(pcfg), params, k_roll, th, goals, members=members)
+    return [goal_metrics(tr.landing[s], goals[s], tr.hit[s], tr.on_opponent[s]) for s in range(len(goals))], tr
+
+
 def training_evaluation(cfg):
     """The evaluation a training run calls (training.trainer.Run's `evaluate`): cfg.eval_goals
     uniform goals, the whole ensemble playing. (params, backend, key) -> metrics."""
     def evaluate(params, backend: Backend, key) -> dict:
         return evaluate_uniform(cfg.world, cfg.policy, params, backend, key, cfg.eval_goals,
                                 members=cfg.train.members)
+    return evaluate
+
+
+def training_evaluation_seeds(cfg):
+    """training_evaluation for the seeds of a batch (training.seeds.SeedRuns): (params [S, ...],
+    backend, keys [S]) -> [metrics] per seed, every seed's goals and throws as if it ran alone."""
+    def evaluate(params, backend: Backend, keys) -> list[dict]:
+        return uniform_runs(cfg.world, cfg.policy, params, backend, keys, cfg.eval_goals, members=cfg.train.members)[0]
     return evaluate
 
 

@@ -53,15 +53,18 @@ def needs(cfg: RunConfig) -> dict[str, int]:
     }
 
 
-def check_fits(cfg: RunConfig, available: int | None = None, fraction: float = 0.9) -> dict[str, int]:
-    """Raise ValueError naming the largest part if the estimate exceeds `fraction` of the
-    device's memory; returns the estimate."""
-    parts = needs(cfg)
+def check_fits(cfg: RunConfig, available: int | None = None, fraction: float = 0.9, seeds: int = 1) -> dict[str, int]:
+    """Raise ValueError naming the largest part if the estimate for `seeds` runs of `cfg` in one
+    program (every part grows linearly with them) exceeds `fraction` of the device's memory;
+    returns the estimate for all of them."""
+    parts = {k: v * seeds for k, v in needs(cfg).items()}
     total, have = sum(parts.values()), available if available is not None else device_bytes()
     if total > fraction * have:
         name, big = max(parts.items(), key=lambda kv: kv[1])
-        raise ValueError(f"this run needs ~{total / GiB:.1f} GiB of device memory, {big / GiB:.1f} GiB of it for the "
-                         f"{name}; the device has {have / GiB:.1f} GiB: lower those settings")
+        who = "this run needs" if seeds == 1 else f"--seeds {seeds} (runs in one program) need"
+        raise ValueError(f"{who} ~{total / GiB:.1f} GiB of device memory, {big / GiB:.1f} GiB of it for the "
+                         f"{name}; the device has {have / GiB:.1f} GiB: lower those settings"
+                         + ("" if seeds == 1 else " or the seed count"))
     return parts
 
 

@@ -26,7 +26,7 @@ from models.policy import make_policy, with_action_noise, with_integrating_actio
 from training.cache import Cache, add_episodes
 from training.config import TrainConfig
 from training.mesh import Layout, single_device
-from training.update import TrainState, acting_params, make_train_loop, state_sharding
+from training.update import TrainState, acting_params, make_train_loop, state_sharding, train_loop_fn
 from ttmjx.world import thrower
 from ttmjx.world.backends import Backend
 from ttmjx.world.config import World
@@ -74,13 +74,18 @@ def round_keys(key):
     return k_goal, k_roll, k_train
 
 
-def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, throws: thrower.Throw):
+def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, throws: thrower.Throw,
+                   seeds: bool = False):
     """One round of Algorithm 1 -> (state, cache, loss [N], PracticeStats): goals, rollouts of the
-    acting (moving-average) policies on `throws` [M], relabel + append, S updates."""
-    k_goal, k_roll, k_train = round_keys(key)
+    acting (moving-average) policies on `throws` [M], relabel + append, S updates.
+
+    seeds=True: every argument and the `parts` carry a leading axis of independent runs (the
+    host round of several seeds; on MJX the whole round is vmapped instead)."""
+    over = jax.vmap if seeds else (lambda f: f)
+    k_goal, k_roll, k_train = over(round_keys)(key)
     traj = parts.rollout(acting_params(state), k_roll, parts.place(throws), parts.place(parts.goals(k_goal)))
     new = parts.append(cache, traj)
-    stats = practice_stats(jax.tree.map(jnp.asarray, traj), cache.count, new.count)
+    stats = over(practice_stats)(jax.tree.map(jnp.asarray, traj), cache.count, new.count)
     state, loss = parts.train(state, new, k_train)
     return state, new, loss, stats
 
@@ -97,14 +102,23 @@ class Practice:
     built once here (the jit boundaries of training) and reused every round."""
 
     def __init__(self, world: World, pcfg: PolicyConfig, tcfg: TrainConfig, backend: Backend,
-                 episodes: int, train_steps: int, layout: Layout | None = None):
+                 episodes: int, train_steps: int, layout: Layout | None = None, seeds: int | None = None):
         if episodes % tcfg.members:
             raise ValueError(f"episodes_per_ssp={episodes} must be a multiple of members={tcfg.members} "
                              f"(every member practises an equal share)")
         self.world, self.tcfg, self.backend, self.episodes = world, tcfg, backend, episodes
         self.layout = layout or single_device()
-        self.train_loop = make_train_loop(pcfg, tcfg, train_steps, self.layout) if train_steps > 0 else None
-        self._sample_throws = jax.jit(lambda k: thrower.sample_throws(k, world, THROW_BLOCK * episodes))
+        # seeds=S: S independent runs in one program; every state, cache, key and throw carries a
+        # leading [S] axis, and each compiled piece is the one-run piece vmapped over it.
+        self.seeds = seeds
+        if seeds and self.layout.mesh.size > 1:
+            raise ValueError(f"{seeds} seeds in one program run on one device; got a mesh of {self.layout.mesh.size}")
+        over = jax.vmap if seeds else (lambda f: f)
+        self.train_loop = None
+        if train_steps > 0:
+            self.train_loop = (jax.jit(jax.vmap(train_loop_fn(pcfg, tcfg, train_steps, self.layout))) if seeds
+                               else make_train_loop(pcfg, tcfg, train_steps, self.layout))
+        self._sample_throws = jax.jit(over(lambda k: thrower.sample_throws(k, world, THROW_BLOCK * episodes)))
         self._bank = (None, None)
         policy = practice_policy(pcfg, tcfg)
         pure = self._pure_parts(backend.rollout_fn(policy, members=tcfg.members)) if backend.name == "mjx" else None
@@ -124,6 +138,8 @@ class Practice:
         lay = self.layout
         parts = pure._replace(rollout=lambda *a: lay.constrain_throws(pure.rollout(*a)))
         out = (state_sharding(lay), lay.replicated, lay.replicated, lay.replicated)
+        if self.seeds:   # one device (checked in __init__): the seed axis needs no placement
+            return jax.jit(jax.vmap(lambda *a: practice_round(parts, *a)))
         return jax.jit(lambda *a: practice_round(parts, *a), out_shardings=out)
 
     def _host_round(self, policy):
@@ -131,6 +147,12 @@ class Practice:
         host physics plays every throw, with the whole parameters on this process's device."""
         backend, members, lay = self.backend, self.tcfg.members, self.layout
         pure = self._pure_parts(None)
+        if self.seeds:
+            parts = pure._replace(
+                goals=jax.jit(jax.vmap(pure.goals)), append=jax.jit(jax.vmap(pure.append)),
+                rollout=lambda p, k, th, g: backend.rollout_seeds(policy, p, k, th, g, members=members),
+                place=lambda tree: tree)
+            return lambda *a: practice_round(parts, *a, seeds=True)
         parts = pure._replace(
             goals=jax.jit(pure.goals), append=jax.jit(pure.append, out_shardings=lay.replicated),
             rollout=lambda p, k, th, g: backend.rollout(policy, lay.local(p), k, th, g, members=members),
@@ -142,22 +164,24 @@ class Practice:
         resumed run replays them), drawn THROW_BLOCK rounds at a time."""
         block, i = divmod(int(it), THROW_BLOCK)
         if self._bank[0] != block:
-            k = jax.random.fold_in(jax.random.fold_in(base_key, THROW_STREAM), block)
+            fold = jax.vmap(jax.random.fold_in, in_axes=(0, None)) if self.seeds else jax.random.fold_in
+            k = fold(fold(base_key, THROW_STREAM), block)
             self._bank = (block, self._sample_throws(k))
         m = self.episodes
-        return jax.tree.map(lambda x: x[i * m:(i + 1) * m], self._bank[1])
+        return jax.tree.map(lambda x: x[..., i * m:(i + 1) * m, :], self._bank[1])   # [(S,) M, 3 or 2]
 
     def train(self, state: TrainState, cache: Cache, key):
         """S training steps -> (state, mean loss per member [N])."""
         if self.train_loop is None:
-            return state, jnp.zeros(self.tcfg.members)
+            return state, jnp.zeros((self.seeds, self.tcfg.members) if self.seeds else self.tcfg.members)
         state, loss = self.train_loop(state, cache, key)
-        return state, loss.mean(0)
+        return state, loss.mean(-2)   # over the steps: [N], or [S, N] with seeds
 
     def iteration(self, state: TrainState, cache: Cache, key, throws: thrower.Throw | None = None):
         """One iteration -> (state, cache, loss [N], PracticeStats or None). With `throws` [M]
-        (`round_throws`) a practice round; without, S updates only (pretraining, LFP)."""
+        (`round_throws`) a practice round; without, S updates only (pretraining, LFP). With seeds,
+        every argument and result has a leading [S] axis."""
         if throws is not None:
             return self._round(state, cache, key, throws)
-        state, loss = self.train(state, cache, round_keys(key)[2])
+        state, loss = self.train(state, cache, (jax.vmap(round_keys) if self.seeds else round_keys)(key)[2])
         return state, cache, loss, None

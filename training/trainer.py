@@ -78,6 +78,16 @@ def write_config(cfg: RunConfig):
     files.write_json(os.path.join(cfg.run_dir, "config.json"), to_json(cfg))
 
 
+SEEDS_FILE = "seeds.json"   # in the directory of a batch of seeds (training.seeds): its seeds and run directories
+
+
+def check_not_seed_parent(run_dir: str) -> None:
+    """A single run cannot live in the directory of a batch of seeds (their runs are inside it)."""
+    if os.path.exists(os.path.join(run_dir, SEEDS_FILE)):
+        raise ValueError(f"{run_dir} holds a batch of seeds ({SEEDS_FILE}); train it with the same --seeds, "
+                         f"or choose another --run-dir")
+
+
 class NonFiniteError(RuntimeError):
     """Training produced a non-finite loss or parameters: the run stops, nothing is saved."""
 
@@ -104,13 +114,20 @@ class Run:
     """A training run in cfg.run_dir: fresh or resumed. `evaluate` (params, backend, key) -> dict
     is called at the evaluation iterations; None skips evaluation."""
 
-    def __init__(self, cfg: RunConfig, evaluate: Evaluate | None = None, progress: bool = True, log=print):
+    def __init__(self, cfg: RunConfig, evaluate: Evaluate | None = None, progress: bool = True, log=print,
+                 shared: tuple[Backend, mesh.Layout] | None = None):
+        """`shared` (backend, layout): this run is one seed of a training.seeds.SeedRuns, which
+        computes for it; the run keeps its directory, log and checkpoints."""
         self.cfg, self.evaluate, self.progress, self.log = cfg, evaluate, progress, log
-        self.layout = mesh.make_layout(cfg)  # refuse what cannot be placed or fit before anything is compiled
-        budget.check_fits(cfg)
-        self.backend = Backend(cfg.world, resolve_backend(cfg.backend))
-        self.practice = Practice(cfg.world, cfg.policy, cfg.train, self.backend,
-                                 cfg.episodes_per_ssp, cfg.steps_between_ssp, self.layout)
+        if shared is None:
+            check_not_seed_parent(cfg.run_dir)
+            self.layout = mesh.make_layout(cfg)  # refuse what cannot be placed or fit before anything is compiled
+            budget.check_fits(cfg)
+            self.backend = Backend(cfg.world, resolve_backend(cfg.backend))
+            self.practice = Practice(cfg.world, cfg.policy, cfg.train, self.backend,
+                                     cfg.episodes_per_ssp, cfg.steps_between_ssp, self.layout)
+        else:
+            (self.backend, self.layout), self.practice = shared, None
         self.ckpt_dir = os.path.join(cfg.run_dir, "checkpoints")
         # With several processes, process 0 writes the run's log; the others keep their own
         # beside it (the same rows: one writer per file).
@@ -178,6 +195,18 @@ class Run:
         self._absorbed = list(loaded.meta.get("absorbed_data", []))
         self.saved_at = loaded.step
         return self.place(loaded.ck)   # restored on one device, whatever the devices that saved it
+
+    def rewind(self, step: int) -> Checkpointed:
+        """The state of this run's checkpoint `step` (older than its newest), its log cut back
+        to it: so the seeds of a batch that a crash left one save apart start level again."""
+        try:
+            loaded = checkpoint.load_checkpoint(self.ckpt_dir, step)
+        except FileNotFoundError as e:
+            raise ValueError(f"{self.cfg.run_dir}: cannot go back to iteration {step}, where the other seeds of "
+                             f"its batch are ({e}); raise keep_checkpoints or delete the batch's runs") from None
+        self.metrics.truncate(step)
+        self.saved_at = step
+        return self.place(loaded.ck)
 
     def saved_config(self) -> dict:
         """The run directory's config.json ({} if it has none)."""
@@ -276,17 +305,27 @@ class Run:
 
     # -- signals -----------------------------------------------------------------------------
     def _install_signals(self):
-        def handler(signum, frame):
-            if self._stop:  # a second signal: exit now (the last checkpoint stays)
-                os._exit(128 + signum)
-            self._stop = signum
-            self.log(f"\n[ttmjx] {signal.Signals(signum).name}: finishing this iteration, saving a checkpoint, "
-                     f"then exiting (resume with the same command)")
-        self._old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+        install_stop_signals(self)
 
     def _restore_signals(self):
-        for s, h in getattr(self, "_old", {}).items():
-            signal.signal(s, h)
+        restore_signals(self)
+
+
+def install_stop_signals(owner):
+    """SIGINT/SIGTERM set owner._stop (the loop saves and exits after the iteration); a second
+    one exits at once (the last checkpoint stays)."""
+    def handler(signum, frame):
+        if owner._stop:
+            os._exit(128 + signum)
+        owner._stop = signum
+        owner.log(f"\n[ttmjx] {signal.Signals(signum).name}: finishing this iteration, saving a checkpoint, "
+                  f"then exiting (resume with the same command)")
+    owner._old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+
+
+def restore_signals(owner):
+    for s, h in getattr(owner, "_old", {}).items():
+        signal.signal(s, h)
 
 
 def _now() -> float:

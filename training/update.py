@@ -100,13 +100,20 @@ def make_train_step(pcfg: PolicyConfig, tcfg: TrainConfig, layout: Layout | None
     return _compiled(layout, lambda state, cache, key: _ensemble_update(pcfg, tcfg, layout, state, cache, key))
 
 
-def make_train_loop(pcfg: PolicyConfig, tcfg: TrainConfig, num_steps: int, layout: Layout | None = None):
-    """jit-compiled `train_loop(state, cache, key) -> (state, loss [num_steps, N])`: `num_steps`
-    updates in one call (a scan), for the updates between two practice rounds; on `layout`'s
-    devices (default: one device)."""
+def train_loop_fn(pcfg: PolicyConfig, tcfg: TrainConfig, num_steps: int, layout: Layout | None = None):
+    """The pure `train_loop(state, cache, key) -> (state, loss [num_steps, N])`: `num_steps`
+    updates as one scan (to compile alone, vmapped over seeds, or inside a practice round)."""
     layout = layout or single_device()
 
     def loop(state, cache, key):
         body = lambda s, k: _ensemble_update(pcfg, tcfg, layout, s, cache, k)  # noqa: E731
         return jax.lax.scan(body, state, jax.random.split(key, num_steps))
-    return _compiled(layout, loop)
+    return loop
+
+
+def make_train_loop(pcfg: PolicyConfig, tcfg: TrainConfig, num_steps: int, layout: Layout | None = None):
+    """jit-compiled `train_loop(state, cache, key) -> (state, loss [num_steps, N])`: `num_steps`
+    updates in one call (a scan), for the updates between two practice rounds; on `layout`'s
+    devices (default: one device)."""
+    layout = layout or single_device()
+    return _compiled(layout, train_loop_fn(pcfg, tcfg, num_steps, layout))

@@ -196,16 +196,20 @@ class TrainArgs(Report):
     `ttmjx train --preset paper-sim --seed 1 --train.members 4`. A non-zero --seed without
     --run-dir runs in the preset's run directory + '-seedN'. The same command resumes a run.
     """
-    BOUNDS: ClassVar[dict] = {"max_iterations": (1, None)}
+    BOUNDS: ClassVar[dict] = {"max_iterations": (1, None), "seeds": (1, 1000)}
     config: Annotated[RunConfig, tyro.conf.arg(name="")]
     max_iterations: int | None = None
     """Stop (with a checkpoint) after this many iterations; the same command resumes later."""
+    seeds: int = 1
+    """Train seeds --seed .. --seed + N - 1 together in one program (training/seeds.py), each in
+    RUN_DIR/seed<s>; 1: one run in RUN_DIR."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class EvalArgs(Report):
     """Goal-reaching metrics of a run's checkpoint (its moving-average policy)."""
-    BOUNDS: ClassVar[dict] = {"per_goal": (1, batch_limit), "member": (0, None), "step": (0, None)}
+    BOUNDS: ClassVar[dict] = {"per_goal": (1, batch_limit), "member": (0, None), "step": (0, None),
+                              "seed_index": (0, None)}
     NEW_DIRS: ClassVar[tuple] = ("out",)
     run: RunPath
     """Run directory (or its checkpoints/ directory)."""
@@ -226,6 +230,8 @@ class EvalArgs(Report):
     """Evaluate one ensemble member alone; None: the whole ensemble."""
     step: int | None = None
     """Checkpoint step; None: the newest intact one."""
+    seed_index: int | None = None
+    """A batch of seeds (ttmjx train --seeds N): evaluate seed K alone; None: every seed, with the mean and spread."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -280,10 +286,12 @@ class BaselineArgs(Report):
 class ExportArgs(Report):
     """Safetensors weights + contract + golden self-test (+ ONNX graph) of a checkpoint, for the
     robot runner, under a manifest of SHA-256 hashes (docs/DATA.md)."""
-    BOUNDS: ClassVar[dict] = {"step": (0, None), "member": (0, None)}
+    BOUNDS: ClassVar[dict] = {"step": (0, None), "member": (0, None), "seed_index": (0, None)}
     NEW_DIRS: ClassVar[tuple] = ("out",)
     checkpoint: RunPath
     """A run directory holding checkpoints/, or a checkpoint directory."""
+    seed_index: int | None = None
+    """A batch of seeds (ttmjx train --seeds N): export seed K (required for a batch)."""
     out: str
     """Export directory (must not hold an export)."""
     step: int | None = None
@@ -324,16 +332,24 @@ class RobotRunArgs(Report):
     charge_compute: Flag = False
     """sim: charge the runner's own computation time to the simulated clock (then two runs with
     the same seed can differ by the machine's speed); off: runs are reproducible by seed."""
-    timing: Literal["nominal", "zero"] = "nominal"
-    """sim: sensor and actuation timing of the station (ttmjx.world.config.TIMING_PROFILES):
-    nominal (tracker 125 Hz, 10 ms; joints 250 Hz, 4 ms; commands 8 ms) or zero (ideal)."""
+    timing: str | None = None
+    """sim: sensor and actuation timing of the station; None: the timing the policy was trained
+    under (the export's contract, without its per-episode randomization); or a profile of
+    ttmjx.world.config.TIMING_PROFILES: nominal (tracker 125 Hz, 10 ms; joints 250 Hz, 4 ms;
+    commands 8 ms) or zero (ideal). A timing outside the trained range is refused."""
+    allow_untrained_timing: Flag = False
+    """sim: play a station timing outside the range the policy was trained under (the summary says so)."""
+    config: str | None = None
+    """cell: the cell config (TOML: EGM, gantry Modbus, tracker, launcher; docs/ROBOT.md)."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class RobotSweepArgs(Report):
     """Strict success of an exported policy on the simulated station against added latency of the
-    ball tracker and of the commands: a table, sweep.json and sweep.png."""
-    BOUNDS: ClassVar[dict] = {"n": (1, 100_000), "max_ms": (0.0, 1000.0), "points": (2, 50)}
+    ball tracker, of the commands, added jitter, and all three together (the export verified and
+    its policy built once for every point): a table, sweep.json and sweep.png."""
+    BOUNDS: ClassVar[dict] = {"n": (1, 100_000), "max_ms": (0.0, 1000.0), "points": (2, 50),
+                              "max_jitter_ms": (0.0, 1000.0)}
     NEW_DIRS: ClassVar[tuple] = ("out",)
     policy: str
     """An export directory (ttmjx export --out)."""
@@ -345,12 +361,15 @@ class RobotSweepArgs(Report):
     """Largest added latency (ms)."""
     points: int = 6
     """Latencies from 0 to max_ms, evenly spaced."""
+    max_jitter_ms: float = 20.0
+    """Largest added per-sample jitter (ms) of the jitter series (and of 'all')."""
+    series: str = "ball,action,jitter,all"
+    """Series to sweep, comma-separated: ball (tracker latency), action (command delay), jitter, all (together)."""
     seed: int = 0
     """Seed of the goals and throws."""
-    timing: Literal["nominal", "zero"] = "nominal"
-    """The station's timing the latency is added to."""
-    config: str | None = None
-    """cell: the cell config (TOML: EGM, gantry Modbus, tracker, launcher; docs/ROBOT.md)."""
+    timing: str | None = None
+    """The station's timing the latency is added to; None: the timing the policy was trained under
+    (its centre); or a profile (nominal, zero)."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -368,8 +387,11 @@ class RobotServeArgs(Report):
     """Seed of the throws (as `robot run --station sim --seed`)."""
     distribution: Literal[THROW_DISTRIBUTIONS] | None = None
     """Throws; None: the export's training world."""
-    timing: Literal["nominal", "zero"] = "nominal"
-    """Sensor timing of the station (the tracker's rate and latency)."""
+    timing: str | None = None
+    """Sensor and actuation timing of the station; None: with --policy the timing the policy was
+    trained under (the export's contract), without it nominal; or a profile (nominal, zero)."""
+    allow_untrained_timing: Flag = False
+    """Serve a station timing outside the range the policy was trained under (the summary says so)."""
     faults: str = ""
     """Injected faults, e.g. 'egm.loss=0.05,modbus.delay_ms=10' (deploy/serve.py FAULT_KINDS)."""
     egm_hz: float = 250.0
@@ -489,16 +511,38 @@ def train(a: TrainArgs) -> None:
     from training.trainer import Run
     cfg = a.config
     check_sources(cfg)
-    out = Run(cfg, evaluate=training_evaluation(cfg), progress=not a.json).run(max_iterations=a.max_iterations)
-    report(a, out, table(out))
+    if a.seeds > 1:
+        from eval.evaluate import training_evaluation_seeds
+        from training.seeds import SeedRuns, seed_configs
+        out = SeedRuns(seed_configs(cfg, a.seeds), training_evaluation_seeds(cfg), progress=not a.json,
+                       parent=cfg.run_dir).run(max_iterations=a.max_iterations)
+        lines = [f"seed {r['seed']}: " + table({k: v for k, v in r.items() if k.startswith("eval_")})
+                 .replace("\n", ", ") for r in out["runs"]]
+        report(a, out, table({k: v for k, v in out.items() if k != "runs"}) + "\n" + "\n".join(lines))
+    else:
+        out = Run(cfg, evaluate=training_evaluation(cfg), progress=not a.json).run(max_iterations=a.max_iterations)
+        report(a, out, table(out))
     if out["stopped_by_signal"]:
         sys.exit(128 + out["stopped_by_signal"])   # the shell's convention for a signalled exit
 
 
 def evaluate(a: EvalArgs) -> None:
     from eval.evaluate import evaluate_checkpoint
-    out = evaluate_checkpoint(a.run, a.goals, a.per_goal, a.distribution, a.backend, a.seed, a.member, a.step,
-                              out=a.out)
+    from training.seeds import pick_seed, seed_run_dirs, seed_spread
+    dirs = seed_run_dirs(a.run)
+    if dirs is not None and a.seed_index is None:   # a batch of seeds: each one, then the spread
+        if a.out:
+            raise ValueError(f"--out with {a.run} (a batch of {len(dirs)} seeds): choose one with --seed-index")
+        runs = [{"run_dir": d, **{f"eval_{k}": v for k, v in evaluate_checkpoint(
+                    d, a.goals, a.per_goal, a.distribution, a.backend, a.seed, a.member, a.step).items()
+                    if isinstance(v, (int, float))}} for d in dirs]
+        out = {"run": a.run, "seeds": len(dirs), **seed_spread(runs), "runs": runs}
+        lines = [f"{os.path.basename(r['run_dir'])}: <=30cm {r['eval_within_30cm']:.1%} <=20cm "
+                 f"{r['eval_within_20cm']:.1%} hit {r['eval_hit_rate']:.1%}" for r in runs]
+        report(a, out, "\n".join(lines) + "\n" + table({k: v for k, v in out.items() if k.endswith(("_mean", "_std"))}))
+        return
+    out = evaluate_checkpoint(pick_seed(a.run, a.seed_index), a.goals, a.per_goal, a.distribution, a.backend,
+                              a.seed, a.member, a.step, out=a.out)
     text = table(out, skip=("per_goal",))
     for g, m in out.get("per_goal", {}).items():
         text += (f"\ngoal {g}: <=30cm {m['within_30cm']:.0%} <=20cm {m['within_20cm']:.0%} "
@@ -551,7 +595,8 @@ def baseline(a: BaselineArgs) -> None:
 
 def export(a: ExportArgs) -> None:
     from deploy.export import export_checkpoint, load_export
-    path = export_checkpoint(a.checkpoint, a.out, step=a.step, member=a.member, ensemble=a.ensemble,
+    from training.seeds import pick_seed
+    path = export_checkpoint(pick_seed(a.checkpoint, a.seed_index), a.out, step=a.step, member=a.member, ensemble=a.ensemble,
                              control_hz=a.control_hz, onnx={"auto": None, "on": True, "off": False}[a.onnx])
     policy, contract = load_export(path)       # the export must pass its own checks
     doc = policy.contract_doc
@@ -575,18 +620,27 @@ def robot_run(a: RobotRunArgs) -> None:
     config = RunnerConfig(stale_s=a.stale_ms / 1000.0)
     if a.station == "cell":
         from deploy.cli import run_cell_station
+        from deploy.export import read_contract
+        from deploy.timing_check import trained_timing
+        trained_timing(read_contract(a.policy), a.policy)   # an export without a timing record is refused
         out = run_cell_station(a.policy, goals, a.config, a.out, config)
     elif a.station == "sim":
         from deploy.station import run_sim
         out = run_sim(a.policy, goals, a.out, seed=a.seed, distribution=a.distribution,
-                      realtime=a.realtime, charge_compute=a.charge_compute, config=config, timing=a.timing)
+                      realtime=a.realtime, charge_compute=a.charge_compute, config=config, timing=a.timing,
+                      allow_untrained=a.allow_untrained_timing)
     else:
         out = run_fake(goals, a.out, a.policy, None, None, config, a.realtime)
     m = out.get("metrics", {})
+    from deploy.timing_check import timing_line
+    tm = out.get("timing") or {}
     report(a, out, f"{out['episodes']}/{out['goals']} episodes; " +
-           (f"within 30 cm {m.get('within_30cm', 0):.0%}, 20 cm {m.get('within_20cm', 0):.0%}, "
+           (f"within 30 cm {m.get('within_30cm', 0):.1%}, 20 cm {m.get('within_20cm', 0):.1%}, "
             f"hit rate {m.get('hit_rate', 0):.0%}; " if m else "") +
-           f"faults {out['faults']}; logs in {out['out']}")
+           (f"timing {tm['source']}{' (inside the trained range)' if tm['within_trained'] else ''}; "
+            if tm else "") +
+           f"faults {out['faults']}; logs in {out['out']}" +
+           (f"\n{timing_line(tm)}" if tm and not tm["within_trained"] else ""))
     if out["episodes"] != out["goals"]:
         sys.exit(1)
 
@@ -594,9 +648,11 @@ def robot_run(a: RobotRunArgs) -> None:
 def robot_sweep(a: RobotSweepArgs) -> None:
     from deploy.goals import session_goals
     import numpy as np
-    from deploy.sweep import latency_sweep, sweep_table
+    from deploy.sweep import latency_sweep, parse_series, sweep_table
+    series = parse_series(a.series)
     goals = session_goals("uniform", a.n, a.seed)
-    out = latency_sweep(a.policy, goals, a.out, np.linspace(0.0, a.max_ms, a.points), a.seed, a.timing)
+    out = latency_sweep(a.policy, goals, a.out, np.linspace(0.0, a.max_ms, a.points), a.seed, a.timing,
+                        series=series, jitter_ms=np.linspace(0.0, a.max_jitter_ms, a.points), progress=not a.json)
     report(a, out, sweep_table(out) + f"\nwrote {a.out}/sweep.json and sweep.png")
 
 
@@ -607,17 +663,30 @@ def robot_serve(a: RobotServeArgs) -> None:
     cell = load_cell_config(a.config)
     faults = parse_faults(a.faults)
     check_ports(cell)                  # before the station's slow start
+    timing_info = None
     if a.policy is not None:
-        from deploy.export import export_world, load_export
-        policy, contract = load_export(a.policy)
-        cfg = export_world(policy.contract_doc)
+        from deploy.station import load_for_station, resolve_timing
+        loaded = load_for_station(a.policy, a.distribution)   # its timing record is required
+        cfg, contract = loaded.cfg, loaded.contract
+        timing, timing_info = resolve_timing(loaded, a.timing, a.allow_untrained_timing)
     else:
+        from deploy.timing_check import TimingError
+        from ttmjx.world.config import TIMING_PROFILES
+        name = a.timing or "nominal"
+        if name not in TIMING_PROFILES:
+            raise TimingError(f"unknown station timing profile {name!r}; expected one of {', '.join(TIMING_PROFILES)}")
+        timing = TIMING_PROFILES[name]
         cfg = World() if a.control_hz is None else World(control_hz=a.control_hz)
         contract = contract_from_world(cfg, cfg.control_hz)
-    if a.distribution:
-        cfg = cfg.with_throws(a.distribution)
-    station = make_station(cfg, contract, a.seed, a.timing)
+        if a.distribution:
+            cfg = cfg.with_throws(a.distribution)
+    station = make_station(cfg, contract, a.seed, timing)
+    if timing_info is not None and not timing_info["within_trained"]:
+        from deploy.timing_check import timing_line
+        print(f"ttmjx robot serve: warning: {timing_line(timing_info)}", file=sys.stderr, flush=True)
     out = serve(cell, station, faults, egm_hz=a.egm_hz, seed=a.seed, duration_s=a.duration_s)
+    if timing_info is not None:
+        out["timing"] = timing_info
     report(a, out, table({k: json.dumps(v) for k, v in out.items()}))
 
 

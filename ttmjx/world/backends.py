@@ -218,6 +218,23 @@ class Backend:
             return self._rollouts[key_](params, key, throws, jnp.asarray(goals))
         return self._c_rollout(policy, params, key, throws, goals, t_max, members)
 
+    def rollout_seeds(self, policy: Policy, params, keys, throws, goals, members: int | None = None) -> Trajectories:
+        """`rollout` of S independent runs at once: params leaves [S, ...], keys [S] (one rollout
+        key per run), throws [S, B, ...], goals [S, B, 2] -> Trajectories [S, B, ...].
+
+        Run s gets exactly the draws `rollout(policy, params[s], keys[s], throws[s], goals[s])`
+        gets: on MJX the rollout is vmapped over runs; on MuJoCo C the S x B throws step
+        together through one host loop (one thread pool, one policy call per control step)."""
+        s, b = np.shape(goals)[:2]
+        if members and b % members:
+            raise ValueError(f"{b} throws cannot be split evenly over {members} ensemble members")
+        if self.name == "mjx":
+            key_ = ("mjx-seeds", policy, self.cfg.horizon, members)
+            if key_ not in self._rollouts:
+                self._rollouts[key_] = jax.jit(jax.vmap(self.rollout_fn(policy, self.cfg.horizon, members)))
+            return self._rollouts[key_](params, keys, throws, jnp.asarray(goals, jnp.float32))
+        return self._c_rollout(policy, params, keys, throws, goals, self.cfg.horizon, members, seeds=s)
+
     def timing_draws(self, key, b: int):
         """The per-episode timing (ttmjx.world.timing.Draw, [B] fields) that rollout(key) on B
         throws draws: to line a station up with a rollout (tests/test_timing.py)."""
@@ -241,30 +258,47 @@ class Backend:
             return carry, obs, self._command(states, action)
         return act
 
-    def _c_rollout(self, policy, params, key, throws, goals, t_max, members):
-        ck = ("c", policy, members)
+    def _c_rollout(self, policy, params, key, throws, goals, t_max, members, seeds: int | None = None):
+        """The host loop. With `seeds`=S, params [S, ...], key [S], throws and goals [S, B, ...]:
+        the compiled steps are vmapped over runs and the physics steps all S x B throws at once."""
+        ck = ("c", policy, members, seeds)
         if ck not in self._rollouts:
             init_b, _ = batched_policy(policy, members)
-            self._rollouts[ck] = (jax.jit(init_b), jax.jit(self._act_fn(policy, members)))
-        init, act = self._rollouts[ck]
-        states, k_init, k_act = self._reset_keys(key, throws, goals)
-        b = states.t.shape[0]
-        carry = init(params, jax.random.split(k_init, b))
+            act, reset = self._act_fn(policy, members), self._reset_keys
+            if seeds:   # the same per-run functions, vmapped over the leading run axis
+                init_b, act, reset = jax.vmap(init_b), jax.vmap(act), jax.vmap(reset)
+            self._rollouts[ck] = (jax.jit(init_b), jax.jit(act), jax.jit(reset))
+        init, act, reset = self._rollouts[ck]
+        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+        states, k_init, k_act = reset(key, jax.tree.map(f32, throws), f32(goals))
+        lead = np.shape(goals)[:-1]                      # (B,) or (S, B)
+        split = jax.vmap(jax.random.split, in_axes=(0, None)) if seeds else jax.random.split
+        fold = jax.vmap(jax.random.fold_in, in_axes=(0, None)) if seeds else jax.random.fold_in
+        flat = lambda tree: jax.tree.map(lambda x: np.reshape(np.asarray(x), (-1,) + np.shape(x)[len(lead):]), tree)  # noqa: E731
+        unflat = lambda tree: jax.tree.map(lambda x: np.reshape(np.asarray(x), lead + np.shape(x)[1:]), tree)  # noqa: E731
+        carry = init(params, split(k_init, lead[-1]))
         frames, vels, actions, valids = [], [], [], []
+        flat_states = flat(states)
         for t in range(t_max):
-            valid = ~np.asarray(states.events.done)
-            carry, obs, target = act(params, carry, states, jax.random.fold_in(k_act, t))
-            out = self._physics(states, target)
-            frames.append(obs.frame), vels.append(obs.ball_vel), actions.append(target), valids.append(valid)
-            states = self._advance(states, target, *out)
+            valid = ~np.asarray(flat_states.events.done)
+            carry, obs, target = act(params, carry, states, fold(k_act, t))
+            target = flat(target)
+            out = self._physics(flat_states, target)
+            frames.append(flat(obs.frame)), vels.append(flat(obs.ball_vel)), actions.append(target)
+            valids.append(valid)
+            flat_states = self._advance(flat_states, target, *out)
+            states = unflat(flat_states) if seeds else flat_states
             if not valid.any():
                 break
         pad = t_max - len(frames)
         stack = lambda xs: np.concatenate([np.stack([np.asarray(x) for x in xs], 1),  # noqa: E731
                                            np.repeat(np.asarray(xs[-1])[:, None], pad, 1)], 1)
-        valid_arr = np.concatenate([np.stack(valids, 1), np.zeros((b, pad), bool)], 1)
-        return jax.tree.map(np.asarray, _record(self.cfg, self.lay, states, stack(frames), stack(vels),
-                                                stack(actions), valid_arr))
+        valid_arr = np.concatenate([np.stack(valids, 1), np.zeros((len(valids[0]), pad), bool)], 1)
+        per_step = [stack(frames), stack(vels), stack(actions)]
+        if seeds:
+            per_step = [_as_if_alone(x, valid_arr, seeds) for x in per_step]
+        rec = _record(self.cfg, self.lay, flat_states, *per_step, valid_arr)
+        return jax.tree.map(np.asarray, unflat(rec) if seeds else rec)
 
     def rollout_fn(self, policy: Policy, t_max: int | None = None, members: int | None = None):
         """MJX only: a pure, jittable `(params, key, throws, goals [B, 2]) -> Trajectories`
@@ -291,6 +325,18 @@ class Backend:
             sw = lambda x: jnp.swapaxes(x, 0, 1)  # noqa: E731
             return _record(self.cfg, self.lay, states, sw(f), sw(v), sw(a), sw(val))
         return run
+
+
+def _as_if_alone(x, valid, seeds: int):
+    """Per-step values [S * B, T, ...] of runs stepped together, as each run alone records them:
+    a run alone stops at its first step with no valid throw and repeats that step's values to
+    the horizon (invalid steps, but kept in the cache: identical data whatever runs beside it)."""
+    t_max = valid.shape[1]
+    live = valid.reshape(seeds, -1, t_max).any(1)                     # [S, T]
+    end = np.where(live.all(1), t_max - 1, np.argmin(live, 1))        # [S] last recorded step
+    idx = np.minimum(np.arange(t_max)[None], end[:, None])            # [S, T]
+    idx = np.repeat(idx, valid.shape[0] // seeds, 0)                  # [S * B, T]
+    return np.take_along_axis(x, idx.reshape(idx.shape + (1,) * (x.ndim - 2)), 1)
 
 
 def _episode_keys(key, b: int):
