@@ -44,6 +44,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--fake", action="store_true", help="fake robot and tracker (same as --station fake)")
     p.add_argument("--realtime", action="store_true", help="pace on the real clock")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--timing", default=None,
+                   help="--station sim: the station's timing: the export's (default: what the policy was "
+                        "trained under) or a profile (nominal, zero)")
+    p.add_argument("--allow-untrained-timing", action="store_true",
+                   help="--station sim: play a station timing outside the policy's trained range")
     return p.parse_args(argv)
 
 
@@ -96,7 +101,7 @@ def main(argv=None) -> int:
                 raise ValueError("--station sim needs --policy DIR (an export)")
             from deploy.station import run_sim
             out = run_sim(args.policy, goals, args.out, seed=args.seed, realtime=args.realtime,
-                          config=config)
+                          config=config, timing=args.timing, allow_untrained=args.allow_untrained_timing)
         else:
             out = run_fake(goals, args.out, args.policy, args.rate, args.frame_stack, config,
                            args.realtime)

@@ -12,6 +12,9 @@ An export is a directory of four or five files, nothing pickled:
   contract.json        what the runner, the robot and the policy must agree on: format and
                        version; the robot model id and joint order, units, ranges and speed
                        limits; the control rate and frame stack (`runtime`, a deploy.Contract);
+                       the timing model and ranges the policy was trained under
+                       (`timing`, deploy/timing_check.py: the station's default timing and
+                       what a station is checked against);
                        the observation layout (ttmjx.world.observation) and order; the goal
                        frame and units; the policy type, sizes, recurrent state shape and
                        ensemble rule; the normalization; the source checkpoint; the SHA-256 of
@@ -54,6 +57,7 @@ from deploy.contract import (REAL_OBS_SIZE, ROBOT_MODEL_ID, Contract, contract_f
 from deploy.numpy_policy import ACTION_SIZE, NORM_FIELDS, ExportedPolicy, PolicySpec, check_tensors
 from deploy.onnx_policy import (INPUTS, IR_VERSION, OPSET, OUTPUTS, MissingExtra, OnnxPolicy,
                                 import_onnxruntime, model_bytes, reference_session, session)
+from deploy.timing_check import timing_record
 from ttmjx.world import files, observation
 from ttmjx.world.config import JOINT_NAMES, Robot, Table, World, opponent_half, to_dict
 
@@ -363,6 +367,9 @@ def contract_doc(spec: PolicySpec, tensors: dict, runtime: Contract, world_cfg: 
         "source": {"checkpoint": str(source), "members": members,
                    "exported_at": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")},
         "world": to_dict(world_cfg),
+        # The timing the policy was trained under and its ranges, hashed (deploy/timing_check.py):
+        # the station's default, and what a station's timing is checked against.
+        "timing": timing_record(world_cfg.timing),
     }
 
 

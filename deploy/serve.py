@@ -65,13 +65,16 @@ FAULT_KINDS = {
 PROBABILITIES = ("loss", "reorder", "duplicate", "malformed", "nan", "range", "msgtype", "future")
 
 
-def make_station(cfg, contract, seed: int, timing: str):
-    """The simulated station on the real clock: the one place `serve` builds it."""
+def make_station(cfg, contract, seed: int, timing):
+    """The simulated station on the real clock: the one place `serve` builds it. timing: a
+    ttmjx.world.config.Timing or a profile name."""
     from deploy.serve_station import ServedStation
     from deploy.station import TIMING
-    if timing not in TIMING:
-        raise ValueError(f"--timing {timing!r}: expected one of {', '.join(TIMING)}")
-    return ServedStation(cfg, contract, clock=MonotonicClock(), seed=seed, timing=TIMING[timing])
+    if isinstance(timing, str):
+        if timing not in TIMING:
+            raise ValueError(f"--timing {timing!r}: expected one of {', '.join(TIMING)}")
+        timing = TIMING[timing]
+    return ServedStation(cfg, contract, clock=MonotonicClock(), seed=seed, timing=timing)
 
 
 # --------------------------------------------------------------------------------------------

@@ -650,32 +650,86 @@ def summarize(runner: Runner, station: SimStation, episodes: list[Episode], goal
     })
 
 
-def run_sim(policy_dir: str, goals, out_dir: str | None = None, seed: int = 0,
-            distribution: str | None = None, realtime: bool = False, charge_compute: bool = False,
-            throw_delay_s: float = 0.3, config: RunnerConfig = RunnerConfig(),
-            timing: str = "nominal", sync_launch: bool = False) -> dict:
-    """Load an export (every check of deploy.export.load_export), build the simulated station
-    in the export's World (throws from `distribution` if given, sensors of the TIMING profile
-    `timing`) and play one episode per goal [N, 2] (sync_launch: as `play`); returns the
-    summary (summarize) plus the export's self-test error."""
+@dataclasses.dataclass
+class Loaded:
+    """An export verified and built once (deploy.export.load_export: manifest, hashes, contract,
+    golden self-test) with its training world and timing record: what every session of
+    `ttmjx robot run` and every point of `ttmjx robot sweep` plays."""
+    policy_dir: str
+    policy: object
+    contract: Contract
+    cfg: World
+    timing: dict          # deploy.timing_check.trained_timing: the contract's timing record
+
+
+def load_for_station(policy_dir: str, distribution: str | None = None) -> Loaded:
+    """Verify and build an export once (every check of load_export, then its timing record:
+    an export without one is refused, TimingError)."""
     from deploy.export import export_world, load_export
-    from deploy.hardware import MonotonicClock
+    from deploy.timing_check import trained_timing
     policy, contract = load_export(policy_dir)
+    record = trained_timing(policy.contract_doc, policy_dir)
     cfg = export_world(policy.contract_doc)
     if distribution:
         cfg = cfg.with_throws(distribution)
+    return Loaded(policy_dir, policy, contract, cfg, record)
+
+
+def resolve_timing(loaded: Loaded, timing: str | Timing | None, allow_untrained: bool = False,
+                   source: str | None = None) -> tuple[Timing, dict]:
+    """(the station's Timing, the summary's `timing` object): None or 'export' plays the trained
+    timing's centre, a name a TIMING_PROFILES profile, a Timing itself (`source` names it). A
+    timing outside the trained ranges is a TimingError unless allow_untrained."""
+    from deploy.timing_check import check_station, station_timing
+    if isinstance(timing, Timing):
+        tm, src = timing, source or "given"
+    else:
+        tm, src = station_timing(loaded.timing, timing)
+    return tm, check_station(loaded.timing, tm, src, allow_untrained)
+
+
+def play_session(loaded: Loaded, goals, out_dir: str | None = None, seed: int = 0, realtime: bool = False,
+                 charge_compute: bool = False, throw_delay_s: float = 0.3,
+                 config: RunnerConfig = RunnerConfig(), timing: str | Timing | None = None,
+                 sync_launch: bool = False, allow_untrained: bool = False,
+                 timing_source: str | None = None) -> dict:
+    """One session of a loaded export on a fresh simulated station (run_sim's work after the
+    load). The policy is reset at every episode by the runner, so one build serves any number
+    of sessions."""
+    from deploy.hardware import MonotonicClock
+    tm, timing_info = resolve_timing(loaded, timing, allow_untrained, timing_source)
     goals = check_goals(goals)
     clock = MonotonicClock() if realtime else SimClock(charge_compute=charge_compute)
-    station = SimStation(cfg, contract, clock=clock, seed=seed, timing=TIMING[timing] if isinstance(timing, str) else timing)
-    runner = Runner(station.robot, station.tracker, clock, policy, contract, config)
+    station = SimStation(loaded.cfg, loaded.contract, clock=clock, seed=seed, timing=tm)
+    runner = Runner(station.robot, station.tracker, clock, loaded.policy, loaded.contract, config)
     if out_dir is not None:
         os.makedirs(out_dir, exist_ok=True)
     station.prefetch()
     wall = time.perf_counter()
     episodes = play(runner, station, goals, out_dir, throw_delay_s=throw_delay_s, sync_launch=sync_launch)
     out = summarize(runner, station, episodes, goals, time.perf_counter() - wall)
-    out.update({"policy": policy_dir, "self_test_error": policy.self_test_error,
-                "distribution": cfg.throws.name, "out": out_dir, "seed": seed})
+    out.update({"policy": loaded.policy_dir, "self_test_error": loaded.policy.self_test_error,
+                "distribution": loaded.cfg.throws.name, "out": out_dir, "seed": seed,
+                "timing": files.json_safe(timing_info)})
     if out_dir is not None:
         files.write_json(os.path.join(out_dir, "session.json"), out, indent=1)
     return out
+
+
+def run_sim(policy_dir: str, goals, out_dir: str | None = None, seed: int = 0,
+            distribution: str | None = None, realtime: bool = False, charge_compute: bool = False,
+            throw_delay_s: float = 0.3, config: RunnerConfig = RunnerConfig(),
+            timing: str | Timing | None = None, sync_launch: bool = False,
+            allow_untrained: bool = False) -> dict:
+    """Load an export (every check of deploy.export.load_export, and its timing record), build
+    the simulated station in the export's World (throws from `distribution` if given) and play
+    one episode per goal [N, 2] (sync_launch: as `play`); returns the summary (summarize), the
+    export's self-test error and the session's `timing` (deploy.timing_check.timing_summary).
+
+    timing: None (or 'export'): the timing the policy was trained under, without its
+    randomization; a TIMING profile name; or a Timing. A timing outside the trained ranges is
+    refused (deploy.timing_check.TimingError) unless allow_untrained, and the summary says so."""
+    loaded = load_for_station(policy_dir, distribution)
+    return play_session(loaded, goals, out_dir, seed=seed, realtime=realtime, charge_compute=charge_compute,
+                        throw_delay_s=throw_delay_s, config=config, timing=timing, sync_launch=sync_launch,
+                        allow_untrained=allow_untrained)

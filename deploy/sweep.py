@@ -1,57 +1,111 @@
-"""`ttmjx robot sweep`: strict success of an exported policy against added latency.
+"""`ttmjx robot sweep`: strict success of an exported policy against added latency and jitter.
 
-Each point plays the same goals and throws (one seed) on the simulated station, with the
-latency added either to the ball tracker's delivery or to the commands' start (the action
-delay), on top of a timing profile. The runner's staleness limit is raised with the latency
-(stale_s = 0.1 s + latency), so the sweep measures the policy, not the runner's hold.
+The export is verified and its policy built once (deploy.station.load_for_station); every point
+then plays the same goals and throws (one seed) on a fresh simulated station. The station's
+base timing is the one the policy was trained under (its centre; or a named profile), and each
+series adds to it:
+
+  ball    ms of ball-tracker latency (the delivery of each ball sample)
+  action  ms of command delay (the start of each command's ramp)
+  jitter  ms of extra per-sample delivery jitter (uniform in [0, jitter], both sensors)
+  all     the three together: point i adds the ball and action series' i-th value and the
+          jitter series' i-th value at once
+
+The runner's staleness limit is raised with the latency (stale_s = 0.1 s + added latency +
+jitter), so the sweep measures the policy, not the runner's hold. Points outside the timing
+the policy was trained under are played (a sweep exists to look there) and marked
+(`within_trained` False, `outside` the reasons); a point whose timing equals an earlier one
+(the +0 point of every series) is played once.
 """
 from __future__ import annotations
 
-import dataclasses
 import os
 
 import numpy as np
 
 from deploy.runner import RunnerConfig
-from deploy.station import TIMING, run_sim
+from deploy.station import load_for_station, play_session
+from deploy.timing_check import station_timing, with_added
 from ttmjx.world import files
+from ttmjx.world.config import to_dict
 
-SERIES = {"ball": "tracker_latency_s", "action": "action_delay_s"}
+SERIES = ("ball", "action", "jitter", "all")
 
 
-def sweep_point(policy_dir: str, goals: np.ndarray, seed: int, profile: str, series: str, added_ms: float) -> dict:
-    """One point: the session's metrics with `added_ms` more latency on `series` (ball or action)."""
-    base = TIMING[profile]
-    field = SERIES[series]
-    timing = dataclasses.replace(base, **{field: getattr(base, field) + added_ms / 1000.0})
-    config = RunnerConfig(stale_s=0.1 + added_ms / 1000.0)
-    out = run_sim(policy_dir, goals, None, seed=seed, charge_compute=False, config=config, timing=timing)
-    return {"series": series, "added_ms": float(added_ms), "episodes": out["episodes"], **out["metrics"]}
+def parse_series(spec: str) -> tuple[str, ...]:
+    """'ball,action' -> ('ball', 'action'); ValueError naming an unknown one."""
+    names = tuple(s.strip() for s in spec.split(",") if s.strip())
+    bad = [s for s in names if s not in SERIES]
+    if bad or not names:
+        raise ValueError(f"--series {spec!r}: expected a comma-separated subset of {', '.join(SERIES)}")
+    return names
+
+
+def added_for(series: str, latency_ms: float, jitter_ms: float) -> dict:
+    """Seconds added to each Timing field at one point of `series`."""
+    lat, jit = latency_ms / 1000.0, jitter_ms / 1000.0
+    return {"ball": {"tracker_latency_s": lat}, "action": {"action_delay_s": lat},
+            "jitter": {"jitter_s": jit},
+            "all": {"tracker_latency_s": lat, "action_delay_s": lat, "jitter_s": jit}}[series]
 
 
 def latency_sweep(policy_dir: str, goals: np.ndarray, out_dir: str, added_ms, seed: int = 0,
-                  profile: str = "nominal") -> dict:
-    """Both series over added_ms [P]; writes out_dir/sweep.json and sweep.png (after every point,
-    so an interrupted sweep keeps what it measured). Returns the sweep.json object."""
-    if profile not in TIMING:
-        raise ValueError(f"unknown timing profile {profile!r}; expected one of {sorted(TIMING)}")
+                  profile: str | None = None, series=("ball", "action", "jitter", "all"),
+                  jitter_ms=None, progress: bool = True) -> dict:
+    """Every series over its points (added_ms [P] of latency; jitter_ms [P] of jitter, default
+    added_ms / 5); writes out_dir/sweep.json after every point (an interrupted sweep keeps what
+    it measured) and sweep.png. Returns the sweep.json object."""
+    series = tuple(series)
+    for s in series:
+        if s not in SERIES:
+            raise ValueError(f"unknown sweep series {s!r}; expected one of {SERIES}")
+    added_ms = [float(x) for x in added_ms]
+    jitter_ms = [x / 5.0 for x in added_ms] if jitter_ms is None else [float(x) for x in jitter_ms]
+    if len(jitter_ms) != len(added_ms):
+        raise ValueError(f"{len(jitter_ms)} jitter points for {len(added_ms)} latency points")
+    loaded = load_for_station(policy_dir)                 # verified and built once for every point
+    base, source = station_timing(loaded.timing, profile)
     os.makedirs(out_dir, exist_ok=True)
-    out = {"policy": policy_dir, "profile": profile, "goals": int(len(goals)), "seed": seed, "points": []}
-    for series in SERIES:
-        for ms in added_ms:
-            out["points"].append(sweep_point(policy_dir, goals, seed, profile, series, float(ms)))
-            print(f"sweep: {series} +{ms:.0f} ms: within 30 cm {out['points'][-1]['within_30cm']:.1%}", flush=True)
+    out = {"policy": policy_dir, "profile": source, "base_timing": to_dict(base),
+           "trained_ranges": loaded.timing["ranges"], "goals": int(len(goals)), "seed": seed,
+           "series": list(series), "points": []}
+    played: dict = {}
+    for s in series:
+        for lat, jit in zip(added_ms, jitter_ms):
+            add = added_for(s, lat, jit)
+            tm = with_added(base, **add)
+            key = tuple(sorted(to_dict(tm).items()))
+            if key not in played:
+                extra = sum(add.values()) if s != "action" else add.get("jitter_s", 0.0)
+                config = RunnerConfig(stale_s=0.1 + extra)
+                label = f"{source} + " + ", ".join(f"{k} {1e3 * v:g} ms" for k, v in add.items())
+                session = play_session(loaded, goals, None, seed=seed, charge_compute=False, config=config,
+                                       timing=tm, allow_untrained=True, timing_source=label)
+                played[key] = {"episodes": session["episodes"], **session["metrics"],
+                               "within_trained": session["timing"]["within_trained"],
+                               "outside": session["timing"]["outside"]}
+            point = {"series": s, "added_ms": jit if s == "jitter" else lat, "added_jitter_ms":
+                     jit if s in ("jitter", "all") else 0.0, **played[key]}
+            out["points"].append(point)
+            if progress:
+                print(f"sweep: {s} +{point['added_ms']:g} ms: within 30 cm {point['within_30cm']:.1%}"
+                      f"{'' if point['within_trained'] else ' (outside the trained timing)'}", flush=True)
             files.write_json(os.path.join(out_dir, "sweep.json"), files.json_safe(out), indent=1)
+    out["sessions_played"] = len(played)
+    files.write_json(os.path.join(out_dir, "sweep.json"), files.json_safe(out), indent=1)
     plot_sweep(out, os.path.join(out_dir, "sweep.png"))
     return out
 
 
 def sweep_table(out: dict) -> str:
     """A markdown table of the sweep."""
-    rows = ["| added latency (ms) | on | within 30 cm | within 20 cm | hit rate |", "| --- | --- | --- | --- | --- |"]
+    rows = ["| series | added (ms) | within 30 cm | within 20 cm | hit rate | trained timing |",
+            "| --- | --- | --- | --- | --- | --- |"]
     for p in out["points"]:
-        rows.append(f"| {p['added_ms']:.0f} | {p['series']} | {p['within_30cm']:.1%} | {p['within_20cm']:.1%} | "
-                    f"{p['hit_rate']:.1%} |")
+        added = (f"{p['added_ms']:g} (+{p['added_jitter_ms']:g} jitter)" if p["series"] == "all"
+                 else f"{p['added_ms']:g}")
+        rows.append(f"| {p['series']} | {added} | {p['within_30cm']:.1%} | {p['within_20cm']:.1%} | "
+                    f"{p['hit_rate']:.1%} | {'inside' if p['within_trained'] else 'OUTSIDE'} |")
     return "\n".join(rows)
 
 
@@ -60,16 +114,18 @@ def plot_sweep(out: dict, path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(6, 4))
-    for series, style in (("ball", "-o"), ("action", "-s")):
-        pts = [p for p in out["points"] if p["series"] == series]
+    styles = {"ball": "-o", "action": "-s", "jitter": "-^", "all": "-D"}
+    for s in out["series"]:
+        pts = [p for p in out["points"] if p["series"] == s]
         x = [p["added_ms"] for p in pts]
-        ax.plot(x, [100 * p["within_30cm"] for p in pts], style, label=f"{series} latency, within 30 cm")
-        ax.plot(x, [100 * p["within_20cm"] for p in pts], style, alpha=0.5, label=f"{series} latency, within 20 cm")
-    ax.set_xlabel("added latency (ms)")
+        label = {"jitter": "jitter", "all": "all (jitter / 5)"}.get(s, f"{s} latency")
+        ax.plot(x, [100 * p["within_30cm"] for p in pts], styles[s], label=f"{label}, within 30 cm")
+        ax.plot(x, [100 * p["within_20cm"] for p in pts], styles[s], alpha=0.4, label=f"{label}, within 20 cm")
+    ax.set_xlabel("added latency / jitter (ms)")
     ax.set_ylabel("success (%), strict")
-    ax.set_title(f"{os.path.basename(out['policy'].rstrip('/'))}: {out['goals']} goals, profile {out['profile']}")
+    ax.set_title(f"{os.path.basename(out['policy'].rstrip('/'))}: {out['goals']} goals, base {out['profile']}")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=6)
     fig.tight_layout()
     fig.savefig(path + ".tmp.png", dpi=120)
     plt.close(fig)

@@ -3,6 +3,7 @@ timestamps, whole episodes of an exported policy through the runner, and logs th
 Trajectories and relabel. Its events (the world's rules): tests/test_event_rules.py."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 
@@ -17,7 +18,7 @@ from deploy.station import SimClock, SimStation, complete_episode, play, run_sim
 from models import PolicyConfig, identity_normalizer, init_params
 from training.data import relabel
 from ttmjx.world import observation, record
-from ttmjx.world.config import Timing, World
+from ttmjx.world.config import CELL_TRAINING, Timing, World
 
 CFG = World()
 HOME = np.asarray(CFG.robot.home)
@@ -97,7 +98,9 @@ def tiny_export(tmp_path_factory):
     pcfg = PolicyConfig(hidden=8, layers=1)
     params = init_params(jax.random.key(0), pcfg, identity_normalizer(13))
     out = str(tmp_path_factory.mktemp("station") / "policy")
-    return export(params, pcfg, CFG, out, control_hz=20, source="random-init")
+    # trained (so its contract says) under the presets' cell timing: the station plays nominal
+    return export(params, pcfg, dataclasses.replace(CFG, timing=CELL_TRAINING), out, control_hz=20,
+                  source="random-init")
 
 
 def test_robot_run_on_the_sim_station_end_to_end(tiny_export, tmp_path):
@@ -179,19 +182,32 @@ def test_ttmjx_robot_run_cli(tiny_export, tmp_path, capsys):
 
 
 def test_robot_sweep_plays_every_point_and_its_zero_point_is_the_plain_run(tiny_export, tmp_path):
-    """`ttmjx robot sweep`: both series at every added latency on the same goals and throws,
-    saved as JSON and PNG; +0 ms is exactly the robot run at the profile (same seed)."""
-    from deploy.station import TIMING
+    """`ttmjx robot sweep`: every series (ball, action, jitter, all) at every point on the same
+    goals and throws, the export verified and built once, the +0 point played once; saved as
+    JSON and PNG; +0 ms is exactly the robot run at the trained timing (same seed); points
+    beyond the trained range are marked."""
+    import deploy.station as station
     from deploy.sweep import latency_sweep, sweep_table
     goals = np.array([[0.7, 0.3], [0.4, -0.5]])
-    out = latency_sweep(tiny_export, goals, str(tmp_path / "sweep"), [0, 50], seed=1)
+    loads = []
+    real = station.load_for_station
+    station_load = lambda *a, **k: loads.append(a) or real(*a, **k)  # noqa: E731
+    import deploy.sweep as sweep
+    sweep.load_for_station, saved_fn = station_load, sweep.load_for_station
+    try:
+        out = latency_sweep(tiny_export, goals, str(tmp_path / "sweep"), [0, 50], seed=1, jitter_ms=[0, 2])
+    finally:
+        sweep.load_for_station = saved_fn
+    assert len(loads) == 1 and out["sessions_played"] == 5
     assert [(p["series"], p["added_ms"]) for p in out["points"]] == [
-        ("ball", 0.0), ("ball", 50.0), ("action", 0.0), ("action", 50.0)]
+        ("ball", 0.0), ("ball", 50.0), ("action", 0.0), ("action", 50.0), ("jitter", 0.0), ("jitter", 2.0),
+        ("all", 0.0), ("all", 50.0)]
     assert all(p["episodes"] == len(goals) for p in out["points"])
+    assert [p["within_trained"] for p in out["points"]] == [True, False] * 4
     saved = json.load(open(tmp_path / "sweep" / "sweep.json"))
-    assert [p["added_ms"] for p in saved["points"]] == [0.0, 50.0, 0.0, 50.0]
+    assert [p["added_ms"] for p in saved["points"]] == [0.0, 50.0, 0.0, 50.0, 0.0, 2.0, 0.0, 50.0]
     assert open(tmp_path / "sweep" / "sweep.png", "rb").read(8) == b"\x89PNG\r\n\x1a\n"
     assert sweep_table(out).count("\n") == 1 + len(out["points"])
-    plain = run_sim(tiny_export, goals, None, seed=1, charge_compute=False, timing=TIMING["nominal"])
+    plain = run_sim(tiny_export, goals, None, seed=1, charge_compute=False)
     for k in ("within_30cm", "within_20cm", "hit_rate"):
         assert out["points"][0][k] == out["points"][2][k] == plain["metrics"][k], k

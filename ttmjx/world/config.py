@@ -221,8 +221,17 @@ class Timing:
     """Per episode, each of the two latencies and the action delay is shifted by a uniform draw in
     [-delay_spread_s, +delay_spread_s], never below zero (training randomization around the
     profile, so the profile itself sits in the middle of what training saw; 0: fixed)."""
+    ideal_timing: bool = False
+    """The explicit choice of ideal timing (every physics step sensed at once, commands acting at
+    once): every field above is reset to its ideal value. Presets train under the cell's timing
+    (CELL_TRAINING); a policy trained ideal plays only on an ideal station (`ttmjx robot run`
+    refuses a real cell's timing for it)."""
 
     def __post_init__(self):
+        if self.ideal_timing:
+            for f in dataclasses.fields(self):
+                if f.name not in ("ideal_timing", "extrapolate_s"):
+                    object.__setattr__(self, f.name, f.default)
         for name in ("tracker_latency_s", "joint_latency_s", "action_delay_s", "jitter_s",
                      "extrapolate_s", "delay_spread_s"):
             v = getattr(self, name)
@@ -242,6 +251,23 @@ class Timing:
                 and self.joint_latency_s == 0 and self.action_delay_s == 0 and self.jitter_s == 0
                 and self.drop_prob == 0 and self.delay_spread_s == 0)
 
+    def trained_ranges(self) -> dict:
+        """What a policy trained under this timing saw, per episode: the sensor rates (None: every
+        physics step) and [lowest, highest] of each latency and of the action delay (s), the
+        jitter and drop probability ([0, largest]). deploy/export.py records it in the contract;
+        a station whose timing falls outside it is refused (deploy/timing_check.py)."""
+        r = self.delay_spread_s
+        span = lambda v: [max(0.0, v - r), v + r]  # noqa: E731
+        return {"tracker_hz": self.tracker_hz, "joint_hz": self.joint_hz,
+                "tracker_latency_s": span(self.tracker_latency_s),
+                "joint_latency_s": span(self.joint_latency_s),
+                "action_delay_s": span(self.action_delay_s),
+                "jitter_s": [0.0, self.jitter_s], "drop_prob": [0.0, self.drop_prob]}
+
+    def centre(self) -> "Timing":
+        """This timing without its per-episode randomization: the profile a station plays."""
+        return dataclasses.replace(self, delay_spread_s=0.0)
+
     def max_delay_s(self) -> float:
         """The longest latency or action delay an episode can draw (s)."""
         return max(self.tracker_latency_s, self.joint_latency_s, self.action_delay_s) + self.delay_spread_s + self.jitter_s
@@ -256,6 +282,15 @@ TIMING_PROFILES = {
     "nominal": Timing(tracker_hz=125.0, tracker_latency_s=0.010, joint_hz=250.0, joint_latency_s=0.004,
                       action_delay_s=0.008, jitter_s=0.001),
 }
+
+# What every preset trains under (ideal timing is the explicit `--world.timing.ideal-timing`):
+# the cell's `nominal` model, each latency and the command delay drawn per episode within
+# +-10 ms of it (the randomization measured to carry a policy to the station and over the
+# cell's drivers, docs/RESULTS.md "The robot's timing"). A real cell's delays drift with load,
+# cabling and firmware by milliseconds; a policy trained at fixed delays loses most of its
+# success to 2 ms of extra command delay.
+CELL_TRAINING = dataclasses.replace(TIMING_PROFILES["nominal"], delay_spread_s=0.010)
+IDEAL = Timing(ideal_timing=True)
 
 CONTROL_RATES = (20, 60, 100)
 

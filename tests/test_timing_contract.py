@@ -1,0 +1,134 @@
+"""The export's timing record (issue #23): the contract records the timing model and ranges the
+policy was trained under, hashed; `ttmjx robot run` plays that timing by default and refuses,
+with one line and exit code 2, a station outside it (unless told to play it anyway, and then
+the summary says so), an export without the record, and an unknown profile name. Presets train
+under the cell's timing; ideal timing is an explicit choice."""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import os
+import shutil
+
+import jax
+import pytest
+
+from deploy.export import CONTRACT_FILE, MANIFEST_FILE, export, load_export, read_contract
+from deploy.timing_check import (TimingError, check_station, outside_trained, station_timing,
+                                 timing_record, trained_timing)
+from models import PolicyConfig, identity_normalizer, init_params
+from training import runconfig
+from ttmjx.world import files
+from ttmjx.world.config import CELL_TRAINING, IDEAL, TIMING_PROFILES, Timing, World
+
+
+@pytest.fixture(scope="module")
+def exports(tmp_path_factory):
+    """A tiny random-init LSTM exported twice at 20 Hz: trained (so its contract says) under the
+    cell's timing, and under ideal timing."""
+    pcfg = PolicyConfig(hidden=8, layers=1)
+    params = init_params(jax.random.key(0), pcfg, identity_normalizer(13))
+    root = tmp_path_factory.mktemp("timing_contract")
+    return {name: export(params, pcfg, World(timing=tm), str(root / name), control_hz=20, source="random-init")
+            for name, tm in (("cell", CELL_TRAINING), ("ideal", IDEAL))}
+
+
+def without_timing_record(src: str, dst: str) -> str:
+    """A copy of an export as exported before issue #23: no `timing` section, manifest re-hashed."""
+    from deploy.export import write_manifest
+    shutil.copytree(src, dst)
+    doc = json.load(open(os.path.join(dst, CONTRACT_FILE)))
+    del doc["timing"]
+    files.write_bytes(os.path.join(dst, CONTRACT_FILE), (json.dumps(doc, indent=1) + "\n").encode())
+    os.remove(os.path.join(dst, MANIFEST_FILE))
+    write_manifest(dst, {n: open(os.path.join(dst, n), "rb").read() for n in os.listdir(dst)})
+    return dst
+
+
+def test_presets_train_under_the_cells_timing_and_ideal_is_explicit():
+    for name in ("default", "cpu", "gpu", "lfp", "gcsl", "paper-sim", "paper-sim-new"):
+        tm = runconfig.preset(name).world.timing
+        assert tm == CELL_TRAINING and not tm.ideal and tm.delay_spread_s > 0, name
+    assert runconfig.preset("tiny").world.timing.ideal_timing            # chosen, for the recorded numbers
+    # the explicit choice resets every field of a profile to ideal
+    chosen = dataclasses.replace(CELL_TRAINING, ideal_timing=True)
+    assert chosen.ideal and chosen.tracker_hz is None and chosen.action_delay_s == 0 == chosen.delay_spread_s
+    from ttmjx.cli import parse_train
+    a = parse_train(["--world.timing.ideal-timing"])
+    assert a.config.world.timing.ideal
+
+
+def test_the_contract_records_the_trained_timing_and_its_ranges_hashed(exports):
+    doc = read_contract(exports["cell"])
+    rec = trained_timing(doc, exports["cell"])
+    assert rec["timing"] == CELL_TRAINING and rec["ranges"] == json.loads(json.dumps(CELL_TRAINING.trained_ranges()))
+    assert rec["ranges"]["tracker_hz"] == 125.0 and rec["ranges"]["joint_hz"] == 250.0
+    lo, hi = rec["ranges"]["action_delay_s"]
+    assert lo == 0.0 and hi == pytest.approx(0.018)
+    assert rec["randomized_per_episode"] and not rec["ideal"]
+    assert doc["timing"] == json.loads(json.dumps(timing_record(CELL_TRAINING)))
+    # hashed: a changed range or model no longer matches the record's sha256
+    for path in (("ranges", "action_delay_s"), ("model", "delay_spread_s")):
+        bad = copy.deepcopy(doc)
+        bad["timing"][path[0]][path[1]] = [0.0, 0.5] if path[0] == "ranges" else 0.5
+        with pytest.raises(TimingError, match="sha256"):
+            trained_timing(bad)
+    ideal = trained_timing(read_contract(exports["ideal"]))
+    assert ideal["ideal"] and ideal["ranges"]["tracker_hz"] is None
+
+
+def test_the_station_plays_the_trained_timing_and_refuses_what_is_outside(exports):
+    cell, ideal = (trained_timing(read_contract(exports[k])) for k in ("cell", "ideal"))
+    tm, src = station_timing(cell, None)
+    assert src == "export" and tm == TIMING_PROFILES["nominal"] and not outside_trained(cell, tm)
+    assert not outside_trained(cell, dataclasses.replace(tm, action_delay_s=0.017))
+    late = dataclasses.replace(tm, action_delay_s=0.030)
+    assert [s.split()[0] for s in outside_trained(cell, late)] == ["action_delay_s"]
+    with pytest.raises(TimingError, match="outside what the policy was trained under"):
+        check_station(cell, late, "late")
+    summary = check_station(cell, late, "late", allow_untrained=True)
+    assert summary["override"] and not summary["within_trained"] and summary["outside"]
+    # an ideal-trained policy refuses the cell's timing, and a cell-trained one the ideal station
+    assert outside_trained(ideal, TIMING_PROFILES["nominal"]) and outside_trained(cell, TIMING_PROFILES["zero"])
+    assert not outside_trained(ideal, Timing())
+    with pytest.raises(TimingError, match="unknown station timing profile 'bogus'"):
+        station_timing(cell, "bogus")
+
+
+def _one_line_exit_2(capsys, argv):
+    from ttmjx.cli import main
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err.strip()
+    assert e.value.code == 2 and len(err.splitlines()) == 1, err
+    return err
+
+
+def test_robot_run_refuses_bad_timing_with_one_line_and_exit_2(exports, tmp_path, capsys):
+    run = ["robot", "run", "--station", "sim", "--goals", "0.7,0.3"]
+    err = _one_line_exit_2(capsys, [*run, "--policy", exports["cell"], "--timing", "zero"])
+    assert "outside what the policy was trained under" in err and "--allow-untrained-timing" in err
+    err = _one_line_exit_2(capsys, [*run, "--policy", exports["ideal"]] + ["--timing", "nominal"])
+    assert "action_delay_s 8 ms (trained 0 ms..0 ms)" in err
+    err = _one_line_exit_2(capsys, [*run, "--policy", exports["cell"], "--timing", "bogus"])
+    assert "unknown station timing profile 'bogus'" in err
+    old = without_timing_record(exports["cell"], str(tmp_path / "old"))
+    load_export(old)                                 # a valid export otherwise
+    err = _one_line_exit_2(capsys, [*run, "--policy", old])
+    assert "no timing record" in err
+    err = _one_line_exit_2(capsys, ["robot", "sweep", "--policy", old, "--out", str(tmp_path / "sw")])
+    assert "no timing record" in err
+    assert not os.path.exists(tmp_path / "sw" / "sweep.json")
+
+
+def test_robot_run_plays_the_trained_timing_by_default_and_says_when_overridden(exports, capsys):
+    from ttmjx.cli import main
+    run = ["robot", "run", "--station", "sim", "--goals", "0.7,0.3", "--seed", "1", "--json"]
+    main([*run, "--policy", exports["cell"]])
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["episodes"] == 1 and out["timing"]["source"] == "export" and out["timing"]["within_trained"]
+    assert out["timing"]["station"] == dataclasses.asdict(TIMING_PROFILES["nominal"])
+    main([*run[:-1], "--policy", exports["ideal"], "--timing", "nominal", "--allow-untrained-timing"])
+    text = capsys.readouterr().out
+    assert "TIMING OUTSIDE THE TRAINED RANGE" in text
