@@ -10,9 +10,10 @@ directory under the ablation's output directory, reduced to a small JSON result 
     OUT/results/<variant>-seed<s>.json   the finished cell (skipped when it exists)
     OUT/table.md, curves.png, landings/<variant>.png, summary.json
 
-Cells are ordered seed-major (every variant of seed 0, then seed 1, ...), so the first cells of
-a partial run already compare every variant. Seeds run one after another; running them together
-on one device (vmapping the seed) is future work.
+Cells are ordered seed-major (every variant of seed 0, then seed 1, ...) for --plan and --cells.
+The unfinished seeds of a variant train together as one program on one device (training/seeds.py:
+the seed is a vmapped axis), the variants one after another in the same process; each seed keeps
+its own run directory and result, so a cell is the same experiment as when it ran alone.
 """
 from __future__ import annotations
 
@@ -265,8 +266,10 @@ def run(name: str, scale: str, seeds: int, out: str, spec: str | None = None, tr
         if c.config.practice and practice_iterations(c.config) == 0:
             log(f"[ablate] note: {c.name} practises nothing: its {c.config.total_trajectories} trajectories do not "
                 f"exceed its {c.config.demos} demonstrations", file=sys.stderr)
+    # GoalsEye's seeds of a variant train together as one program (training/seeds.py).
+    batch = cellrun.goalseye_seeds if trainer is cellrun.goalseye else None
     stopped = cellrun.run_cells(cells, os.path.join(out, "results"), trainer, progress, f"ablate {name} {scale}",
-                                log=lambda m: log(m, file=sys.stderr))
+                                log=lambda m: log(m, file=sys.stderr), batch=batch)
     summary = build_report(name, scale, out, command)
     return {**summary, "cells_run": [c.name for c in cells], "stopped_by_signal": stopped}
 

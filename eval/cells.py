@@ -18,9 +18,10 @@ from typing import Any, Callable, NamedTuple
 import jax
 import numpy as np
 
-from eval.evaluate import padded, rollout_goals, training_evaluation
+from eval.evaluate import padded, rollout_goals, training_evaluation, training_evaluation_seeds
 from training.checkpoint import load_checkpoint
 from training.runlog import MetricsLog
+from training.seeds import SeedRuns
 from training.trainer import Run
 from ttmjx.world import files
 from ttmjx.world.backends import Backend, resolve_backend
@@ -41,6 +42,8 @@ class Outcome(NamedTuple):
 
 
 Trainer = Callable[[Any, bool], Outcome]   # (config with seed and run_dir set, progress) -> Outcome
+# (configs that differ only in seed and run_dir, progress) -> one Outcome per config
+BatchTrainer = Callable[[list, bool], list]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -119,18 +122,64 @@ def run_cell(cell: Cell, results_dir: str, trainer: Trainer, progress: bool = Tr
     return result
 
 
-def run_cells(cells: list, results_dir: str, trainer: Trainer, progress: bool, tag: str, log) -> int:
+def run_cells(cells: list, results_dir: str, trainer: Trainer, progress: bool, tag: str, log,
+              batch: BatchTrainer | None = None) -> int:
     """run_cell over `cells` in order, logging each (`[tag] ...`); stops at the first cell a
-    signal cut short. Returns that signal (0: every cell finished)."""
-    for i, cell in enumerate(cells):
-        log(f"[{tag}] cell {i + 1}/{len(cells)} {cell.name}")
-        result = run_cell(cell, results_dir, trainer, progress, log=log)
-        if "final" not in result:
-            return result["stopped_by_signal"]
-        f = result["final"]
-        log(f"[{tag}] {cell.name}: <=30cm {f['within_30cm']:.1%} <=20cm {f['within_20cm']:.1%} "
-            f"hit {f['hit_rate']:.1%} in {result['wall_s']:.0f} s")
+    signal cut short. Returns that signal (0: every cell finished).
+
+    With `batch`, the unfinished cells of one variant (its seeds) train together as one
+    program (`batch(configs, progress)`), the variants one after another in this process."""
+    groups = seed_groups(cells, results_dir) if batch else [[c] for c in cells]
+    done = 0
+    for group in groups:
+        names = ", ".join(c.name for c in group)
+        log(f"[{tag}] cell{'s' if len(group) > 1 else ''} {done + 1}"
+            f"{'-' + str(done + len(group)) if len(group) > 1 else ''}/{len(cells)} {names}")
+        if len(group) == 1:
+            results = [run_cell(group[0], results_dir, trainer, progress, log=log)]
+        else:
+            results = run_group(group, results_dir, batch, progress)
+        done += len(group)
+        for cell, result in zip(group, results):
+            if "final" not in result:
+                return result["stopped_by_signal"]
+            f = result["final"]
+            log(f"[{tag}] {cell.name}: <=30cm {f['within_30cm']:.1%} <=20cm {f['within_20cm']:.1%} "
+                f"hit {f['hit_rate']:.1%} in {result['wall_s']:.0f} s")
     return 0
+
+
+def seed_groups(cells: list, results_dir: str) -> list[list]:
+    """The cells in groups that one program can train: the unfinished seeds of each variant
+    together (in first-appearance order); finished cells alone (they are only read)."""
+    groups: dict = {}
+    for c in cells:
+        finished = os.path.exists(result_path(results_dir, c))
+        groups.setdefault((c.variant,) if not finished else (c.variant, c.seed, "done"), []).append(c)
+    return list(groups.values())
+
+
+def run_group(group: list, results_dir: str, batch: BatchTrainer, progress: bool) -> list[dict]:
+    """The results of the seeds of one variant trained together (written atomically per cell);
+    [{'stopped_by_signal': N}, ...] if a signal stopped them (the same call resumes them)."""
+    for c in group:
+        os.makedirs(c.run_dir, exist_ok=True)
+    t0 = time.perf_counter()
+    outs = batch([c.config for c in group], progress)
+    per_cell = (time.perf_counter() - t0) / len(group)   # the program's time, shared by its seeds
+    results = []
+    for cell, out in zip(group, outs):
+        wall = add_wall_time(cell.run_dir, per_cell)
+        if not out.finished:
+            results.append({"stopped_by_signal": out.stopped_by_signal})
+            continue
+        result = {"variant": cell.variant, "seed": cell.seed, "run_dir": cell.run_dir, "final": out.final,
+                  "curve": out.curve, "landings": out.landings, "wall_s": wall["wall_s"],
+                  "attempts": wall["attempts"], "config": config_json(cell.config), "seeds_in_program": len(group)}
+        os.makedirs(results_dir, exist_ok=True)
+        files.write_json(result_path(results_dir, cell), result, indent=None)
+        results.append(result)
+    return results
 
 
 def add_wall_time(run_dir: str, seconds: float) -> dict:
@@ -149,8 +198,20 @@ def goalseye(cfg, progress: bool = True) -> Outcome:
     out = Run(cfg, evaluate=training_evaluation(cfg), progress=progress).run()
     if not out["finished"]:
         return Outcome(False, out["stopped_by_signal"], {}, [], {})
-    final, landings = final_evaluation(cfg.run_dir)
-    return Outcome(True, 0, final, curve(cfg.run_dir), landings)
+    return _finished(cfg.run_dir)
+
+
+def goalseye_seeds(cfgs: list, progress: bool = True) -> list[Outcome]:
+    """goalseye for the seeds of one variant, trained together (training.seeds.SeedRuns)."""
+    out = SeedRuns(cfgs, evaluate=training_evaluation_seeds(cfgs[0]), progress=progress).run()
+    if not out["finished"]:
+        return [Outcome(False, out["stopped_by_signal"], {}, [], {}) for _ in cfgs]
+    return [_finished(c.run_dir) for c in cfgs]
+
+
+def _finished(run_dir: str) -> Outcome:
+    final, landings = final_evaluation(run_dir)
+    return Outcome(True, 0, final, curve(run_dir), landings)
 
 
 def curve(run_dir: str) -> list[dict]:
