@@ -120,8 +120,17 @@ class ThrowArgs(WorldArgs):
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class BenchArgs(WorldArgs):
-    """Physics throughput of a backend against the raw mujoco.rollout baseline (docs/BENCHMARKS.md)."""
-    BOUNDS: ClassVar[dict] = {"batch": (1, batch_limit), "threads": (1, 1024)}
+    """Physics throughput of a backend against the raw mujoco.rollout baseline; with --train
+    PRESET, where a training round's time goes (docs/BENCHMARKS.md)."""
+    BOUNDS: ClassVar[dict] = {"batch": (1, batch_limit), "threads": (1, 1024), "seeds": (1, 1000), "reps": (1, 100)}
+    train: Literal[PRESET_NAMES] | None = None
+    """Time a training round of this preset instead (rollout, relabel + insert, updates, the whole round,
+    evaluation; rates, compile time, peak memory, the run's projected time); physics from the preset's
+    backend (auto: MJX on an accelerator)."""
+    seeds: int = 1
+    """With --train: seeds trained together in one program (ttmjx train --seeds)."""
+    reps: int = 2
+    """With --train: timed calls per piece after the first (which compiles)."""
     backend: Backend = "c"
     """Physics backend: MuJoCo C (mujoco.rollout) or MJX."""
     batch: int = 1024
@@ -450,6 +459,11 @@ def throw(a: ThrowArgs) -> None:
 
 
 def bench(a: BenchArgs) -> None:
+    if a.train is not None:
+        from eval.bench_train import bench_training
+        out = bench_training(a.train, a.seeds, a.reps, log=lambda m: print(m, file=sys.stderr))
+        report(a, out, table({k: v for k, v in out.items() if k != "schedule"}) + f"\nschedule  {out['schedule']}")
+        return
     from ttmjx.tools import bench as physics_bench
     out = physics_bench.bench(a.world(), a.backend, a.batch, a.threads)
     report(a, out, table(out))

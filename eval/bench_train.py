@@ -1,0 +1,110 @@
+"""`ttmjx bench --train PRESET [--seeds N]`: where the time of a training round goes.
+
+The pieces of one round of S seeds trained as one program (training/seeds.py), each timed
+after a first call that compiles it: the practice rollout, relabel + insert into the pools,
+the S updates, the whole round as training runs it (on MJX one compiled program), and the
+evaluation. From them: trajectories and updates per second, compile time, peak device memory
+and the projected wall time of the preset's whole run (its schedule of pretraining chunks,
+practice rounds and evaluations; demonstrations and checkpoints not counted).
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import resource
+import statistics
+import tempfile
+import time
+
+import jax
+import numpy as np
+
+from eval.evaluate import training_evaluation_seeds
+from training.cache import add_episodes
+from training.practice import THROW_BLOCK, practice_policy
+from training.runconfig import preset
+from training.seeds import SeedRuns, seed_configs, stacked
+from training.trainer import is_eval_iteration, practice_iterations, pretrain_iterations, total_iterations
+from training.update import acting_params
+from ttmjx.world.goals import uniform_goals
+
+
+def timed(fn, reps: int) -> tuple[float, float, object]:
+    """(seconds of the first call, median seconds of `reps` more, the last result)."""
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn())
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+    return first, statistics.median(times), out
+
+
+def peak_memory() -> dict:
+    """Peak bytes on the device (accelerators report it) and this process's peak resident set."""
+    stats = jax.local_devices()[0].memory_stats() or {}
+    out = {"peak_host_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20}
+    if "peak_bytes_in_use" in stats:
+        out["peak_device_gib"] = stats["peak_bytes_in_use"] / 2 ** 30
+    return out
+
+
+def bench_training(name: str, seeds: int = 1, reps: int = 2, demos: int | None = 512, backend: str | None = None,
+                   log=print) -> dict:
+    """The round of preset `name` with `seeds` seeds in one program -> figures (seconds, rates;
+    `throws_block_s` solves the throws of THROW_BLOCK rounds, once per that many rounds).
+    `demos` caps the demonstrations collected to fill the pools (they only set the pool's
+    contents, not a round's cost)."""
+    cfg = preset(name)
+    cfg = dataclasses.replace(cfg, demos=min(cfg.demos, demos) if demos and cfg.demos else cfg.demos,
+                              backend=backend or cfg.backend,
+                              run_dir=os.path.join(tempfile.mkdtemp(prefix="ttmjx-bench-"), name))
+    t0 = time.perf_counter()
+    runs = SeedRuns(seed_configs(cfg, seeds), progress=False, log=log)
+    ck = stacked([r.initial() for r in runs.runs])
+    setup_s = time.perf_counter() - t0
+    pr, be, w, m = runs.practice, runs.backend, cfg.world, cfg.episodes_per_ssp
+    base = np.asarray(ck.key)
+    keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(base, 0)
+    out = {"preset": name, "seeds": seeds, "backend": be.name, "episodes_per_round": m * seeds,
+           "updates_per_round": cfg.steps_between_ssp * seeds, "setup_s": setup_s,
+           "device": jax.devices()[0].device_kind if be.name == "mjx" else f"cpu x{os.cpu_count()}"}
+
+    def piece(label: str, fn):
+        first, steady, res = timed(fn, reps)
+        out[f"{label}_s"], out[f"{label}_first_call_s"] = steady, first
+        log(f"[bench] {label}: {steady:.3f} s per call ({first:.1f} s first call)")
+        return res
+
+    blocks = iter(range(1, reps + 2))   # a new block of rounds each call: the solve is not cached
+    piece("throws_block", lambda: pr.round_throws(base, THROW_BLOCK * next(blocks)))
+    throws = pr.round_throws(base, 0)
+    goals = jax.vmap(lambda k: uniform_goals(k, m, w.table, cfg.train.practice_goal_margin))(keys)
+    policy, params = practice_policy(cfg.policy, cfg.train), acting_params(ck.state)
+    traj = piece("rollout", lambda: be.rollout_seeds(policy, params, keys, throws, goals, cfg.train.members))
+    append = jax.jit(jax.vmap(lambda c, t: add_episodes(c, t, w.table, cfg.train.practice_keep_margin)))
+    cache = piece("relabel_insert", lambda: append(ck.cache, jax.tree.map(jax.numpy.asarray, traj)))
+    if pr.train_loop is not None:
+        piece("updates", lambda: pr.train_loop(ck.state, cache, keys))
+    piece("round", lambda: pr.iteration(ck.state, ck.cache, keys, throws))
+    evaluate = training_evaluation_seeds(cfg)
+    piece("evaluation", lambda: evaluate(params, be, keys))
+    del cache, traj
+
+    n_pre, n_prac = pretrain_iterations(cfg), practice_iterations(cfg)
+    n_eval = sum(is_eval_iteration(cfg, i) for i in range(total_iterations(cfg)))
+    compile_s = sum(max(out[f"{p}_first_call_s"] - out[f"{p}_s"], 0.0)
+                    for p in ("round", "updates", "evaluation") if f"{p}_s" in out)
+    per_round = out["round_s"]
+    out.update({
+        "trajectories_per_s": m * seeds / per_round,
+        "updates_per_s": cfg.steps_between_ssp * seeds / per_round if cfg.practice else 0.0,
+        "compile_s": compile_s,
+        "schedule": {"pretrain_chunks": n_pre, "practice_rounds": n_prac, "evaluations": n_eval,
+                     "total_trajectories": cfg.total_trajectories},
+        "projected_run_s": compile_s + n_pre * out.get("updates_s", 0.0) + n_prac * per_round
+                           + n_eval * out["evaluation_s"],
+        **peak_memory()})
+    return out
