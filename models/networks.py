@@ -67,7 +67,40 @@ def net_step(cfg: PolicyConfig, net_params, carry, x):
 
 
 def net_sequence(cfg: PolicyConfig, net_params, xs):
-    """A sequence from a zero state: xs [L, S, O] normalized -> normalized actions [L, 8]."""
+    """A sequence from a zero state: xs [L, S, O] normalized -> normalized actions [L, 8].
+    The same function as net_step applied step by step (tests/test_models.py), computed for
+    training's speed: the LSTM layer by layer."""
     if cfg.kind != "lstm":  # no state: every step independently
         return jax.vmap(lambda x: net_step(cfg, net_params, (), x)[1])(xs)
-    return jax.lax.scan(lambda c, x: net_step(cfg, net_params, c, x), zero_carry(cfg), xs)[1]
+    return lstm_sequence(net_params, xs[:, 0])
+
+
+def gate_weights(cell: dict) -> tuple:
+    """(input kernel [I, 4H], recurrent kernel [H, 4H], bias [4H]) of one flax OptimizedLSTMCell,
+    gates in its order (i, f, g, o)."""
+    cat = lambda name: jnp.concatenate([cell[f"{name}{g}"]["kernel"] for g in "ifgo"], -1)  # noqa: E731
+    return cat("i"), cat("h"), jnp.concatenate([cell[f"h{g}"]["bias"] for g in "ifgo"], -1)
+
+
+def lstm_sequence(net_params, x):
+    """LSTMNet over a whole sequence, x [L, O] -> actions [L, 8], layer by layer: a layer's input
+    projection for all L steps is one matrix product outside its recurrence (the sequential scan
+    keeps only h @ W_h), which is what a GPU does fast. The cell's arithmetic is flax's
+    OptimizedLSTMCell's: z = (h W_h + b) + x W_i; c' = s(f) c + s(i) tanh(g); h' = s(o) tanh(c')."""
+    p = net_params["params"]
+    layer = 0
+    while f"lstm{layer}" in p:
+        w_i, w_h, b = gate_weights(p[f"lstm{layer}"])
+        z_in = x @ w_i                                       # [L, 4H]
+        zero = jnp.zeros(w_h.shape[0], x.dtype)
+
+        def cell(carry, zi, w_h=w_h, b=b):
+            c, h = carry
+            i, f, g, o = jnp.split(h @ w_h + b + zi, 4, axis=-1)
+            c = jax.nn.sigmoid(f) * c + jax.nn.sigmoid(i) * jnp.tanh(g)
+            h = jax.nn.sigmoid(o) * jnp.tanh(c)
+            return (c, h), h
+        x = jax.lax.scan(cell, (zero, zero), z_in)[1]       # [L, H]
+        layer += 1
+    head = p["head"]
+    return x @ head["kernel"] + head["bias"]

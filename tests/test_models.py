@@ -128,3 +128,22 @@ def test_ensemble_policies_vmap_over_members():
     o = Obs(jnp.zeros(13), jnp.zeros(3), jnp.ones((2, 13)), 0)
     _, a = jax.vmap(policy.apply, in_axes=(0, 0, None, 0))(params, carry, o, keys)
     assert a.shape == (3, 8) and not np.allclose(a[0], a[1])
+
+
+@pytest.mark.parametrize("layers", [1, 3])
+def test_the_layerwise_lstm_sequence_is_the_step_by_step_lstm(layers):
+    """Training's LSTM (input projections outside the recurrence, models.networks.lstm_sequence)
+    against flax's cell stepped one control step at a time: same actions and same gradients."""
+    from models.networks import init_net, lstm_sequence, net_step, zero_carry
+    cfg = PolicyConfig("lstm", hidden=32, layers=layers, obs_size=16)
+    net = init_net(jax.random.PRNGKey(4), cfg)
+    xs = jax.random.normal(jax.random.PRNGKey(5), (24, 1, 16))
+
+    def stepped(p):
+        return jax.lax.scan(lambda c, x: net_step(cfg, p, c, x), zero_carry(cfg), xs)[1]
+
+    np.testing.assert_allclose(lstm_sequence(net, xs[:, 0]), stepped(net), rtol=1e-5, atol=1e-6)
+    g_fast = jax.grad(lambda p: jnp.sum(lstm_sequence(p, xs[:, 0]) ** 2))(net)
+    g_ref = jax.grad(lambda p: jnp.sum(stepped(p) ** 2))(net)
+    for a, b in zip(jax.tree.leaves(g_fast), jax.tree.leaves(g_ref)):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)

@@ -114,9 +114,10 @@ class Practice:
         if seeds and self.layout.mesh.size > 1:
             raise ValueError(f"{seeds} seeds in one program run on one device; got a mesh of {self.layout.mesh.size}")
         over = jax.vmap if seeds else (lambda f: f)
-        self.train_loop = None
+        self.train_loop, self._train_one = None, None
         if train_steps > 0:
-            self.train_loop = (jax.jit(jax.vmap(train_loop_fn(pcfg, tcfg, train_steps, self.layout))) if seeds
+            self._train_one = train_loop_fn(pcfg, tcfg, train_steps, self.layout)   # one run, pure
+            self.train_loop = (jax.jit(jax.vmap(self._train_one)) if seeds
                                else make_train_loop(pcfg, tcfg, train_steps, self.layout))
         self._sample_throws = jax.jit(over(lambda k: thrower.sample_throws(k, world, THROW_BLOCK * episodes)))
         self._bank = (None, None)
@@ -128,8 +129,11 @@ class Practice:
         """Practice goals beyond the table by practice_goal_margin; kept episodes by practice_keep."""
         world, m, tcfg = self.world, self.episodes, self.tcfg
         goal_margin, keep_margin = tcfg.practice_goal_margin, tcfg.practice_keep_margin
+        # With seeds, the MJX round is vmapped whole: its parts are one run's (train_one, not the
+        # vmapped train_loop).
+        train = self.train if not self.seeds else self.train_one
         return RoundParts(goals=lambda k: uniform_goals(k, m, world.table, goal_margin), rollout=rollout,
-                          append=lambda c, t: add_episodes(c, t, world.table, keep_margin), train=self.train,
+                          append=lambda c, t: add_episodes(c, t, world.table, keep_margin), train=train,
                           place=self.layout.constrain_throws)
 
     def _compiled_round(self, pure: RoundParts):
@@ -176,6 +180,13 @@ class Practice:
             return state, jnp.zeros((self.seeds, self.tcfg.members) if self.seeds else self.tcfg.members)
         state, loss = self.train_loop(state, cache, key)
         return state, loss.mean(-2)   # over the steps: [N], or [S, N] with seeds
+
+    def train_one(self, state: TrainState, cache: Cache, key):
+        """`train` of one run, uncompiled (inside the vmapped round of several seeds)."""
+        if self._train_one is None:
+            return state, jnp.zeros(self.tcfg.members)
+        state, loss = self._train_one(state, cache, key)
+        return state, loss.mean(0)
 
     def iteration(self, state: TrainState, cache: Cache, key, throws: thrower.Throw | None = None):
         """One iteration -> (state, cache, loss [N], PracticeStats or None). With `throws` [M]
