@@ -78,8 +78,15 @@ class RunnerConfig:
     # Follow the last two samples this far past the newest: the world's timing model does the same
     # (ttmjx.world.config.Timing.extrapolate_s), so training sees what the runner feeds the policy.
     max_extrapolate_s: float = Timing().extrapolate_s
+    # Homing after an episode takes the joints as settled only from samples stamped this long
+    # after the episode's last command: the command delay and the servos' lag (a robot still
+    # catching up with its last command is not a robot moved by hand; issue #23: with 5 ms more
+    # command delay every session ended in a false joint_mismatch HOLD).
+    command_settle_s: float = 0.1
 
     def __post_init__(self):
+        if not self.command_settle_s >= 0:
+            raise ValueError(f"RunnerConfig.command_settle_s={self.command_settle_s}, expected >= 0")
         for name in ("stale_s", "future_s", "jump_factor", "home_timeout_s", "arm_timeout_s",
                      "arm_poll_s", "max_ball_speed"):
             if not getattr(self, name) > 0:
@@ -426,7 +433,10 @@ class Runner:
                 self.hold("homing: " + ",".join(fault_names(faults)))
                 return False
             if not settled:
-                if self.joints.newest_time > before:
+                fresh = self.joints.newest_time > before
+                caught_up = (self.t_last_sent is None
+                             or self.joints.newest_time >= self.t_last_sent + cfg.command_settle_s)
+                if fresh and caught_up:
                     settle.append(self.joints.newest)
                 here = self._agreeing(settle)
                 if here is None:

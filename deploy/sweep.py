@@ -15,7 +15,9 @@ The runner's staleness limit is raised with the latency (stale_s = 0.1 s + added
 jitter), so the sweep measures the policy, not the runner's hold. Points outside the timing
 the policy was trained under are played (a sweep exists to look there) and marked
 (`within_trained` False, `outside` the reasons); a point whose timing equals an earlier one
-(the +0 point of every series) is played once.
+(the +0 point of every series) is played once. Success rates count every goal: an episode the
+runner did not play (a session that ended in HOLD) is a miss (`episodes` says how many played,
+`faults` and `mode` why).
 """
 from __future__ import annotations
 
@@ -81,7 +83,14 @@ def latency_sweep(policy_dir: str, goals: np.ndarray, out_dir: str, added_ms, se
                 label = f"{source} + " + ", ".join(f"{k} {1e3 * v:g} ms" for k, v in add.items())
                 session = play_session(loaded, goals, None, seed=seed, charge_compute=False, config=config,
                                        timing=tm, allow_untrained=True, timing_source=label)
-                played[key] = {"episodes": session["episodes"], **session["metrics"],
+                m, n = session["metrics"], len(goals)
+                # over every goal: an episode the runner did not play (it ended in HOLD) is a miss
+                played[key] = {"episodes": session["episodes"], **m,
+                               "within_30cm": m["within_30cm"] * session["episodes"] / n,
+                               "within_20cm": m["within_20cm"] * session["episodes"] / n,
+                               "hit_rate": m["hit_rate"] * session["episodes"] / n,
+                               "played_within_30cm": m["within_30cm"], "mode": session["mode"],
+                               "faults": session["faults"],
                                "within_trained": session["timing"]["within_trained"],
                                "outside": session["timing"]["outside"]}
             point = {"series": s, "added_ms": jit if s == "jitter" else lat, "added_jitter_ms":
