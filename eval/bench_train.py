@@ -51,7 +51,7 @@ def peak_memory() -> dict:
     return out
 
 
-def bench_training(name: str, seeds: int = 1, reps: int = 2, demos: int | None = 512, backend: str | None = None,
+def bench_training(name: str, seeds: int = 1, reps: int = 2, demos: int | None = 256, backend: str | None = None,
                    log=print) -> dict:
     """The round of preset `name` with `seeds` seeds in one program -> figures (seconds, rates;
     `throws_block_s` solves the throws of THROW_BLOCK rounds, once per that many rounds).
