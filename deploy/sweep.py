@@ -127,7 +127,7 @@ def plot_sweep(out: dict, path: str) -> None:
     for s in out["series"]:
         pts = [p for p in out["points"] if p["series"] == s]
         x = [p["added_ms"] for p in pts]
-        label = {"jitter": "jitter", "all": "all (jitter / 5)"}.get(s, f"{s} latency")
+        label = {"jitter": "jitter", "all": "all together"}.get(s, f"{s} latency")
         ax.plot(x, [100 * p["within_30cm"] for p in pts], styles[s], label=f"{label}, within 30 cm")
         ax.plot(x, [100 * p["within_20cm"] for p in pts], styles[s], alpha=0.4, label=f"{label}, within 20 cm")
     ax.set_xlabel("added latency / jitter (ms)")
