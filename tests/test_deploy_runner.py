@@ -653,3 +653,54 @@ def test_fault_campaign_never_sends_a_command_outside_the_limits():
     assert injected >= 1000 and injected - (INJECTED - before)["clock_jitter"] >= 1000
     assert v == NO_VIOLATIONS
     assert ends["done"] >= 10 and sum(n for k, n in ends.items() if k.startswith("hold")) >= 10
+
+
+class _DelayedRobot(FakeRobot):
+    """A FakeRobot whose commands start acting delay_s after they are sent (a cell's command delay)."""
+    delay_s = 0.05
+
+    def send(self, q) -> None:
+        q = np.asarray(q, np.float64)
+        now = self.clock.now()
+        start = now + self.delay_s
+        here = self.true_q(start)
+        self._t.append(start)
+        self._q.append(here)
+        self._target.append(q.copy())
+        if len(self._t) > self.keep:
+            del self._t[0], self._q[0], self._target[0]
+        self.sent_t.append(now)
+        self.sent_q.append(q.copy())
+        self.true_at_send.append(self.true_q(now))
+
+
+class _LastTicksAway:
+    """Holds home, then in the episode's last executed ticks steps joint j1 away (as a policy may)."""
+    policy_hash = "test:last-ticks-away"
+
+    def __init__(self, contract):
+        self.home, self.horizon = np.asarray(contract.home, np.float64), contract.horizon
+
+    def reset(self):
+        return 0
+
+    def step(self, state, frame, frames):
+        q = self.home.copy()
+        if state >= self.horizon - 5:
+            q[2] += 0.3
+        return state + 1, q
+
+
+@pytest.mark.parametrize("settle_s, held", [(0.0, True), (RunnerConfig().command_settle_s, False)])
+def test_homing_after_an_episode_waits_for_the_delayed_last_commands(settle_s, held):
+    """With a command delay the robot is still where it was when the episode's last commands
+    leave; homing took it as settled far from the last command (a false joint_mismatch, HOLD:
+    issue #23's sweep); it now reads the joints command_settle_s after the last command."""
+    contract = dataclasses.replace(CONTRACT, control_hz=100.0)
+    clock = FakeClock(start=10.0)
+    robot, tracker = _DelayedRobot(clock, contract), FakeTracker(clock)
+    runner = Runner(robot, tracker, clock, _LastTicksAway(contract), contract,
+                    RunnerConfig(command_settle_s=settle_s))
+    eps = runner.run_episodes([[0.7, 0.3], [0.4, -0.5]], on_armed=lambda i: tracker.throw_in(0.2))
+    assert (runner.fault_counts.get("joint_mismatch", 0) > 0) == held, dict(runner.fault_counts)
+    assert len(eps) == (1 if held else 2)
