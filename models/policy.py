@@ -6,6 +6,8 @@ vmap. A `Policy` is written for one member and one throw; batch it with vmap.
 """
 from __future__ import annotations
 
+import functools
+
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -64,11 +66,16 @@ def _step_input(cfg: PolicyConfig, obs):
     return observation.to_width(obs.frames, cfg.obs_size, xp=jnp)
 
 
+@functools.lru_cache(maxsize=None)
 def make_policy(cfg: PolicyConfig) -> Policy:
     """A deterministic Policy for one member and one throw (params without a leading axis).
 
     Reads obs.frame [13 or 16] and obs.ball_vel [3] (lstm) or obs.frames [k, 13 or 16]
     (framestack); any object with those attributes works. The key is unused.
+
+    One Policy object per configuration (cached): compiled rollouts are cached by the policy
+    they play, so every evaluation of a run reuses the first one's program instead of tracing
+    and compiling the whole rollout again.
     """
     def init(params, key):
         return zero_carry(cfg)
