@@ -48,7 +48,7 @@ def timing_record(timing: Timing) -> dict:
     """The contract's `timing` section for a policy trained under `timing`."""
     model, ranges = to_dict(timing), timing.trained_ranges()
     return {"model": model, "ranges": ranges, "ideal": bool(timing.ideal),
-            "randomized_per_episode": timing.delay_spread_s > 0,
+            "randomized_per_episode": max(timing.spreads()) > 0,
             "station_default": to_dict(timing.centre()),
             "meaning": ("the policy was trained under `model` (ttmjx.world.config.Timing), each episode "
                         "drawing its latencies and command delay within `ranges` (s; rates in Hz, "
@@ -104,8 +104,9 @@ def outside_trained(record: dict, timing: Timing) -> list[str]:
     for name in RANGED:
         lo, hi = ranges[name]
         got = getattr(timing, name)
-        if timing.delay_spread_s and name in ("tracker_latency_s", "joint_latency_s", "action_delay_s"):
-            got_lo, got_hi = max(0.0, got - timing.delay_spread_s), got + timing.delay_spread_s
+        spread = dict(zip(("tracker_latency_s", "joint_latency_s", "action_delay_s"), timing.spreads())).get(name, 0.0)
+        if spread:
+            got_lo, got_hi = max(0.0, got - spread), got + spread
         else:
             got_lo = got_hi = got
         if got_lo < lo - TOL_S or got_hi > hi + TOL_S:

@@ -132,3 +132,14 @@ def test_robot_run_plays_the_trained_timing_by_default_and_says_when_overridden(
     main([*run[:-1], "--policy", exports["ideal"], "--timing", "nominal", "--allow-untrained-timing"])
     text = capsys.readouterr().out
     assert "TIMING OUTSIDE THE TRAINED RANGE" in text
+
+
+def test_the_action_delay_can_spread_on_its_own():
+    tm = dataclasses.replace(CELL_TRAINING, action_delay_spread_s=0.02)
+    ranges = tm.trained_ranges()
+    assert ranges["action_delay_s"] == pytest.approx([0.0, 0.028])
+    assert ranges["tracker_latency_s"] == pytest.approx([0.0, 0.02])
+    assert tm.centre() == TIMING_PROFILES["nominal"] and tm.max_delay_s() == pytest.approx(0.029)
+    rec = trained_timing({"timing": timing_record(tm)})
+    assert not outside_trained(rec, dataclasses.replace(TIMING_PROFILES["nominal"], action_delay_s=0.025))
+    assert outside_trained(rec, dataclasses.replace(TIMING_PROFILES["nominal"], tracker_latency_s=0.025))

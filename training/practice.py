@@ -153,7 +153,7 @@ class Practice:
         pure = self._pure_parts(None)
         if self.seeds:
             parts = pure._replace(
-                goals=jax.jit(jax.vmap(pure.goals)), append=jax.jit(jax.vmap(pure.append)),
+                goals=jax.jit(jax.vmap(pure.goals)), append=jax.jit(jax.vmap(pure.append)), train=self.train,
                 rollout=lambda p, k, th, g: backend.rollout_seeds(policy, p, k, th, g, members=members),
                 place=lambda tree: tree)
             return lambda *a: practice_round(parts, *a, seeds=True)

@@ -221,6 +221,8 @@ class Timing:
     """Per episode, each of the two latencies and the action delay is shifted by a uniform draw in
     [-delay_spread_s, +delay_spread_s], never below zero (training randomization around the
     profile, so the profile itself sits in the middle of what training saw; 0: fixed)."""
+    action_delay_spread_s: float | None = None
+    """The per-episode spread of the action delay alone (s); None: delay_spread_s."""
     ideal_timing: bool = False
     """The explicit choice of ideal timing (every physics step sensed at once, commands acting at
     once): every field above is reset to its ideal value. Presets train under the cell's timing
@@ -237,6 +239,9 @@ class Timing:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"Timing.{name}={v!r}, expected a finite number of seconds >= 0")
+        v = self.action_delay_spread_s
+        if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+            raise ValueError(f"Timing.action_delay_spread_s={v!r}, expected None or a finite number of seconds >= 0")
         for name in ("tracker_hz", "joint_hz"):
             v = getattr(self, name)
             if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -249,28 +254,34 @@ class Timing:
         """Every physics step sensed at once and every command acting at once."""
         return (self.tracker_hz is None and self.joint_hz is None and self.tracker_latency_s == 0
                 and self.joint_latency_s == 0 and self.action_delay_s == 0 and self.jitter_s == 0
-                and self.drop_prob == 0 and self.delay_spread_s == 0)
+                and self.drop_prob == 0 and max(self.spreads()) == 0)
+
+    def spreads(self) -> tuple[float, float, float]:
+        """Per-episode spreads (s) of the tracker latency, the joint latency and the action delay."""
+        a = self.delay_spread_s if self.action_delay_spread_s is None else self.action_delay_spread_s
+        return self.delay_spread_s, self.delay_spread_s, a
 
     def trained_ranges(self) -> dict:
         """What a policy trained under this timing saw, per episode: the sensor rates (None: every
         physics step) and [lowest, highest] of each latency and of the action delay (s), the
         jitter and drop probability ([0, largest]). deploy/export.py records it in the contract;
         a station whose timing falls outside it is refused (deploy/timing_check.py)."""
-        r = self.delay_spread_s
-        span = lambda v: [max(0.0, v - r), v + r]  # noqa: E731
+        rb, rj, ra = self.spreads()
+        span = lambda v, r: [max(0.0, v - r), v + r]  # noqa: E731
         return {"tracker_hz": self.tracker_hz, "joint_hz": self.joint_hz,
-                "tracker_latency_s": span(self.tracker_latency_s),
-                "joint_latency_s": span(self.joint_latency_s),
-                "action_delay_s": span(self.action_delay_s),
+                "tracker_latency_s": span(self.tracker_latency_s, rb),
+                "joint_latency_s": span(self.joint_latency_s, rj),
+                "action_delay_s": span(self.action_delay_s, ra),
                 "jitter_s": [0.0, self.jitter_s], "drop_prob": [0.0, self.drop_prob]}
 
     def centre(self) -> "Timing":
         """This timing without its per-episode randomization: the profile a station plays."""
-        return dataclasses.replace(self, delay_spread_s=0.0)
+        return dataclasses.replace(self, delay_spread_s=0.0, action_delay_spread_s=None)
 
     def max_delay_s(self) -> float:
         """The longest latency or action delay an episode can draw (s)."""
-        return max(self.tracker_latency_s, self.joint_latency_s, self.action_delay_s) + self.delay_spread_s + self.jitter_s
+        rb, rj, ra = self.spreads()
+        return max(self.tracker_latency_s + rb, self.joint_latency_s + rj, self.action_delay_s + ra) + self.jitter_s
 
 
 # Timing profiles (`--world.timing` presets, `ttmjx robot run --timing`). zero: ideal sensing.

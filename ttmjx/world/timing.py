@@ -67,15 +67,16 @@ def history_len(cfg: World) -> int:
 
 def command_len(cfg: World) -> int:
     """K: commands kept for the delayed ramps."""
-    return int(math.ceil((cfg.timing.action_delay_s + cfg.timing.delay_spread_s) / cfg.control_dt)) + 2
+    return int(math.ceil((cfg.timing.action_delay_s + cfg.timing.spreads()[2]) / cfg.control_dt)) + 2
 
 
 def draw(cfg: World, key) -> Draw:
     """The timing of one episode: fixed delays plus the per-episode randomization."""
     tm, dt = cfg.timing, cfg.physics_dt
     k_extra, k_phase, k_lead, k_sample = jax.random.split(key, 4)
-    r = tm.delay_spread_s
-    shift = jax.random.uniform(k_extra, (3,), minval=-r, maxval=r) / dt if r else jnp.zeros(3)
+    r = jnp.array(tm.spreads(), jnp.float32)          # [ball, joints, commands]
+    shift = (jax.random.uniform(k_extra, (3,), minval=-1.0, maxval=1.0) * r / dt if max(tm.spreads())
+             else jnp.zeros(3))
     base = jnp.array([tm.tracker_latency_s, tm.joint_latency_s, tm.action_delay_s], jnp.float32) / dt
     delays = jnp.maximum(base + shift, 0.0)            # [ball, joints, commands] in physics steps
     eb, ej = steps_per_sample(cfg, "tracker_hz"), steps_per_sample(cfg, "joint_hz")
