@@ -274,8 +274,11 @@ class Backend:
         lead = np.shape(goals)[:-1]                      # (B,) or (S, B)
         split = jax.vmap(jax.random.split, in_axes=(0, None)) if seeds else jax.random.split
         fold = jax.vmap(jax.random.fold_in, in_axes=(0, None)) if seeds else jax.random.fold_in
-        flat = lambda tree: jax.tree.map(lambda x: np.reshape(np.asarray(x), (-1,) + np.shape(x)[len(lead):]), tree)  # noqa: E731
-        unflat = lambda tree: jax.tree.map(lambda x: np.reshape(np.asarray(x), lead + np.shape(x)[1:]), tree)  # noqa: E731
+        if seeds:   # [S, B, ...] <-> [S * B, ...] (typed PRNG keys among the leaves: reshape, no numpy)
+            flat = lambda tree: jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(lead):]), tree)  # noqa: E731
+            unflat = lambda tree: jax.tree.map(lambda x: x.reshape(lead + x.shape[1:]), tree)  # noqa: E731
+        else:
+            flat = unflat = lambda tree: tree  # noqa: E731
         carry = init(params, split(k_init, lead[-1]))
         frames, vels, actions, valids = [], [], [], []
         flat_states = flat(states)
