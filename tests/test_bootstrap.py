@@ -1,8 +1,8 @@
 """Bootstrap sources (ttmjx/tools/demos.py) on the MuJoCo C backend: each gives valid
 demonstrations; `paper` never sees the goal and its landings spread as its perturbation implies;
-the perturbation touches exactly its 4 joints; `oracle` is the striker of before, bit for bit."""
-import hashlib
+the perturbation touches exactly its 4 joints; `oracle` is the striker of before."""
 import math
+import os
 
 import jax
 import numpy as np
@@ -16,9 +16,15 @@ from ttmjx.world.goals import uniform_goals
 CFG = World().with_throws("narrow")
 PERT = demos.Perturbation()
 N = 64
-# sha256 of actions, landings and observations of demos.collect(narrow, "scripted", 16, seed=3)
-# recorded with the code before the sources were renamed (commit c892fc6).
-ORACLE_SHA256 = "0fb67d000d77a28df208d8d66a2800e43af739d16d5079de5d3683684c452095"
+# Actions, landings and observations of demos.collect(narrow, "scripted", 16, seed=3) computed by
+# the code before the sources were renamed (commit c892fc6, checked out and run on a 2-core x86-64
+# CPU, 2026-11-25). A hash of them is machine-specific: XLA:CPU emits different float rounding on
+# other x86-64 processors (issue #24), so they are compared to float32 rounding carried through
+# an episode: today's code on the recording machine reproduces them bit for bit.
+BEFORE = os.path.join(os.path.dirname(__file__), "data", "oracle_before_c892fc6.npz")
+# Tolerances: far below anything a change of the striker would move (centimetres, tenths of a
+# radian), far above float32 rounding differences (~1e-6).
+BEFORE_ATOL = {"actions": 1e-4, "obs": 1e-4, "landing": 1e-3}
 
 
 @pytest.fixture(scope="module")
@@ -36,13 +42,6 @@ def paper(backend):
     return run(np.zeros((N, 2), np.float32)), run(goals)
 
 
-def digest(traj) -> str:
-    h = hashlib.sha256()
-    for a in (traj.actions, traj.landing, traj.obs):
-        h.update(np.ascontiguousarray(np.asarray(a)).tobytes())
-    return h.hexdigest()
-
-
 def roundtrip(traj, directory, source):
     """The record saved and loaded as a dataset (which validates shapes and finiteness)."""
     record.save(str(directory), traj, {"source": source})
@@ -52,9 +51,11 @@ def roundtrip(traj, directory, source):
     return back
 
 
-def test_oracle_is_the_striker_of_before_bit_for_bit(tmp_path):
+def test_oracle_is_the_striker_of_before(tmp_path):
     traj = roundtrip(demos.collect(CFG, "oracle", 16, seed=3), tmp_path, "oracle")
-    assert digest(traj) == ORACLE_SHA256
+    before = np.load(BEFORE)
+    for name, atol in BEFORE_ATOL.items():
+        np.testing.assert_allclose(np.asarray(getattr(traj, name)), before[name], rtol=0, atol=atol, err_msg=name)
     assert demos.source_name("scripted") == "oracle"
 
 
