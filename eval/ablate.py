@@ -12,8 +12,10 @@ directory under the ablation's output directory, reduced to a small JSON result 
 
 Cells are ordered seed-major (every variant of seed 0, then seed 1, ...) for --plan and --cells.
 The unfinished seeds of a variant train together as one program on one device (training/seeds.py:
-the seed is a vmapped axis), the variants one after another in the same process; each seed keeps
-its own run directory and result, so a cell is the same experiment as when it ran alone.
+the seed is a vmapped axis), and so do variants that differ only in their demonstrations with the
+same schedule (demos d10/d100/d1000 at full scale); the other programs run one after another in
+the same process. Each cell keeps its own run directory and result, so it is the same experiment
+as when it ran alone.
 """
 from __future__ import annotations
 

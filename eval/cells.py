@@ -21,7 +21,7 @@ import numpy as np
 from eval.evaluate import padded, rollout_goals, training_evaluation, training_evaluation_seeds
 from training.checkpoint import load_checkpoint
 from training.runlog import MetricsLog
-from training.seeds import SeedRuns
+from training.seeds import SeedRuns, program_key
 from training.trainer import Run
 from ttmjx.world import files
 from ttmjx.world.backends import Backend, resolve_backend
@@ -150,12 +150,14 @@ def run_cells(cells: list, results_dir: str, trainer: Trainer, progress: bool, t
 
 
 def seed_groups(cells: list, results_dir: str) -> list[list]:
-    """The cells in groups that one program can train: the unfinished seeds of each variant
-    together (in first-appearance order); finished cells alone (they are only read)."""
+    """The cells in groups that one program can train (training.seeds.program_key): the
+    unfinished seeds of each variant together, and of several variants where they differ only in
+    their data (the demonstrations ablation's d10/d100/d1000), in first-appearance order;
+    finished cells alone (they are only read)."""
     groups: dict = {}
     for c in cells:
         finished = os.path.exists(result_path(results_dir, c))
-        groups.setdefault((c.variant,) if not finished else (c.variant, c.seed, "done"), []).append(c)
+        groups.setdefault(program_key(c.config) if not finished else (c.variant, c.seed, "done"), []).append(c)
     return list(groups.values())
 
 

@@ -146,3 +146,20 @@ def test_train_refuses_a_seed_count_below_one_in_one_line(value, tmp_path):
     assert p.returncode == 2, p.stderr
     assert p.stderr.strip().splitlines() == [f"ttmjx train: error: --seeds {value}: expected between 1 and 1000"]
     assert not os.path.exists(tmp_path / "r")
+
+
+def test_arms_that_differ_only_in_their_demonstrations_share_one_program(tmp_path):
+    """The demonstrations ablation at full scale: d10, d100 and d1000 have the same schedule
+    and differ only in their starting pools, so their 2 x 3 seeds are one program; d0 (no
+    demonstrations, no pretraining) is another."""
+    from eval import ablate
+    from eval.cells import seed_groups
+    cells = ablate.plan("demos", "full", 2, str(tmp_path / "abl"))
+    groups = [sorted(c.name for c in g) for g in seed_groups(cells, str(tmp_path / "abl" / "results"))]
+    assert groups == [["d0-seed0", "d0-seed1"],
+                      ["d10-seed0", "d10-seed1", "d100-seed0", "d100-seed1", "d1000-seed0", "d1000-seed1"]]
+    base = runconfig.tiny()
+    arm = lambda demos, name: dataclasses.replace(base, demos=demos, run_dir=str(tmp_path / name))  # noqa: E731
+    check_one_batch([arm(100, "a"), arm(98, "b")])            # 8 practice rounds each
+    with pytest.raises(ValueError, match=r"differs in \['demos'\] \(and in its schedule"):
+        check_one_batch([arm(100, "a"), arm(150, "b")])      # 8 against 6 rounds

@@ -1,6 +1,7 @@
 """Several seeds of one configuration trained as one program: a batch of runs.
 
-A run is a function of (config, key); S runs that differ only in their seed stack every array of
+A run is a function of (config, key); S runs that differ only in their seed (or, with the same
+schedule, in the demonstrations they start from: `program_key`) stack every array of
 their state (weights, optimizer states, moving averages, caches, keys, counters) on a leading
 [S] axis, and each compiled piece of training (the practice round, the update loop, the throw
 sampler, the evaluation rollout) is the one-run piece vmapped over that axis (training.practice
@@ -34,7 +35,8 @@ from training.checkpoint import Checkpointed, Counters
 from training.practice import Practice
 from training.runconfig import RunConfig, to_json
 from training.trainer import (SEEDS_FILE, NonFiniteError, Run, finite_flags, install_stop_signals, is_eval_iteration,
-                              phase, restore_signals, total_iterations, _now)
+                              phase, practice_iterations, pretrain_iterations, restore_signals, total_iterations,
+                              _now)
 from training.update import acting_params
 from ttmjx.world import files
 from ttmjx.world.backends import Backend, resolve_backend
@@ -42,8 +44,11 @@ from ttmjx.world.backends import Backend, resolve_backend
 # evaluate(params [S, ...], backend, keys [S]) -> [metrics per seed]: eval.evaluate.training_evaluation_seeds
 EvaluateSeeds = Callable[..., list]
 
-# Fields in which the runs of one batch differ.
+# Fields in which the runs of one batch may differ: they change the runs' data (keys, starting
+# pools), not the program that trains them. `demos` and `demo_source` only where every run has
+# demonstrations and the same schedule (`program_key`): the demonstrations ablation's arms.
 PER_SEED = ("seed", "run_dir")
+PER_RUN_DATA = ("demos", "demo_source", "demo_dir")
 
 
 def seed_configs(cfg: RunConfig, seeds: int) -> list[RunConfig]:
@@ -58,16 +63,27 @@ def seed_configs(cfg: RunConfig, seeds: int) -> list[RunConfig]:
             for s in range(cfg.seed, cfg.seed + seeds)]
 
 
+def program_key(cfg: RunConfig) -> str:
+    """What one program must share: the configuration without the per-run fields, and the
+    schedule (pretraining chunks, practice rounds). Runs with equal keys can train together."""
+    d = {k: v for k, v in to_json(cfg).items() if k not in PER_SEED + PER_RUN_DATA}
+    d["has_demos"] = cfg.demos > 0
+    d["schedule"] = (pretrain_iterations(cfg), practice_iterations(cfg))
+    return json.dumps(d, sort_keys=True)
+
+
 def check_one_batch(cfgs: list[RunConfig]) -> None:
-    """ValueError unless the configurations differ only in seed and run directory (one program
-    must compute them all)."""
+    """ValueError unless the configurations can be one program: they differ only in seed, run
+    directory and (with demonstrations and the same schedule) which demonstrations they start from."""
     if not cfgs:
         raise ValueError("a batch of seeds needs at least one configuration")
-    first = {k: v for k, v in to_json(cfgs[0]).items() if k not in PER_SEED}
+    first, key = to_json(cfgs[0]), program_key(cfgs[0])
     for c in cfgs[1:]:
         diff = sorted(k for k, v in to_json(c).items() if k not in PER_SEED and first.get(k) != v)
-        if diff:
-            raise ValueError(f"runs batched as seeds must share their configuration; {c.run_dir} differs in {diff}")
+        if diff and (program_key(c) != key or set(diff) - set(PER_RUN_DATA)):
+            raise ValueError(f"runs batched as seeds must share their configuration; {c.run_dir} differs in {diff}"
+                             + (" (and in its schedule or in having demonstrations)"
+                                if not set(diff) - set(PER_RUN_DATA) else ""))
     dirs = [os.path.abspath(c.run_dir) for c in cfgs]
     if len(set(dirs)) < len(dirs):
         raise ValueError(f"runs batched as seeds need a directory each; got {[c.run_dir for c in cfgs]}")
@@ -172,7 +188,7 @@ class SeedRuns:
         n_tot = total_iterations(cfg)
         start = int(ck.counters.iteration[0])
         stop_at = n_tot if max_iterations is None else min(n_tot, start + max_iterations)
-        total = (cfg.total_trajectories if cfg.practice else max(cfg.demos, 1)) * self.seeds
+        total = sum(c.total_trajectories if c.practice else max(c.demos, 1) for c in (r.cfg for r in self.runs))
         bar = runlog.progress_bar(total, int(np.sum(ck.counters.trajectories)), self.progress)
         last: list[dict] = [{} for _ in self.runs]
         install_stop_signals(self)
@@ -204,7 +220,7 @@ class SeedRuns:
                  **{k: v for k, v in last[s].items() if k.startswith("eval_")}} for s, r in enumerate(self.runs)]
         return {"run_dir": self.parent or os.path.commonpath([r.cfg.run_dir for r in self.runs]),
                 "seeds": [r.cfg.seed for r in self.runs], "iteration": it,
-                "trajectories": int(ck.counters.trajectories[0]), "finished": it >= n_tot,
+                "trajectories": int(np.max(ck.counters.trajectories)), "finished": it >= n_tot,
                 "stopped_by_signal": self._stop, **seed_spread(runs), "runs": runs}
 
 
