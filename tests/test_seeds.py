@@ -62,7 +62,7 @@ def test_a_batched_rollout_records_what_each_run_records_alone():
             np.testing.assert_array_equal(np.asarray(x)[s], np.asarray(y), err_msg=f"run {s}: {name}")
 
 
-def test_seed_k_of_a_batch_is_seed_k_alone(demo_dir, tmp_path):
+def test_seed_k_of_a_batch_is_seed_k_alone(demo_dir, tmp_path, capsys):
     """Two pretraining chunks, the LFP evaluation and a practice round: every number a run logs,
     and its weights, are those of the same seed trained alone."""
     base = tiny(demo_dir, tmp_path / "batch")
@@ -92,6 +92,16 @@ def test_seed_k_of_a_batch_is_seed_k_alone(demo_dir, tmp_path):
     # a seed's directory is an ordinary run: its saved config is seed 1's
     assert json.load(open(os.path.join(cfgs[1].run_dir, "config.json")))["seed"] == 1
     assert pick_seed(base.run_dir, 1) == cfgs[1].run_dir
+    # `ttmjx eval BATCH` reports every seed and their spread; --seed-index K one seed
+    from ttmjx.cli import EvalArgs, evaluate
+    capsys.readouterr()
+    evaluate(EvalArgs(run=base.run_dir, goals="8", json=True))
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["seeds"] == 2 and [os.path.basename(r["run_dir"]) for r in out["runs"]] == ["seed0", "seed1"]
+    assert out["eval_within_30cm_mean"] == pytest.approx(np.mean([r["eval_within_30cm"] for r in out["runs"]]))
+    evaluate(EvalArgs(run=base.run_dir, goals="8", seed_index=1, json=True))
+    one = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert one["within_30cm"] == out["runs"][1]["eval_within_30cm"]
 
     # a crash between the seeds' saves: seed 0 one iteration ahead; the batch goes back to 3
     ahead = Run(cfgs[0], evaluate=None, progress=False)
