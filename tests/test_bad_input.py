@@ -67,7 +67,6 @@ def cases():
         ("export " + RUN + " --out {tmp}/e", "--member", ["-1", "9"]),
         ("export " + RUN + " --out {tmp}/e", "--step", ["-1", "99"]),
         ("export " + RUN + " --out {tmp}/e", "--control-hz", ["50"]),
-        ("export " + RUN + " --out {tmp}/e", "--json", ["--json"]),     # two members, none chosen
         ("export " + RUN + " --out {tmp}/e", "--onnx", ["maybe"]),
         ("robot run --station sim --goals five", "--policy", ["{tmp}/missing", "{empty}", "{file}"]),
         ("robot run --policy {empty} --goals five", "--station", ["moon"]),

@@ -306,7 +306,8 @@ class ExportArgs(Report):
     step: int | None = None
     """Checkpoint step; None: the newest."""
     ensemble: Flag = False
-    """All members; their actions are averaged (not with --member)."""
+    """All members; their actions are averaged (not with --member). Without --member this is what
+    is exported: the whole ensemble, the policy `ttmjx eval` scores."""
     member: int | None = None
     """One member of an ensemble (not with --ensemble)."""
     control_hz: Literal[CONTROL_RATES] | None = None
@@ -610,7 +611,8 @@ def baseline(a: BaselineArgs) -> None:
 def export(a: ExportArgs) -> None:
     from deploy.export import export_checkpoint, load_export
     from training.seeds import pick_seed
-    path = export_checkpoint(pick_seed(a.checkpoint, a.seed_index), a.out, step=a.step, member=a.member, ensemble=a.ensemble,
+    path = export_checkpoint(pick_seed(a.checkpoint, a.seed_index), a.out, step=a.step, member=a.member,
+                             ensemble=a.ensemble or a.member is None,
                              control_hz=a.control_hz, onnx={"auto": None, "on": True, "off": False}[a.onnx])
     policy, contract = load_export(path)       # the export must pass its own checks
     doc = policy.contract_doc
