@@ -97,6 +97,16 @@ THROW_BLOCK = 16
 THROW_STREAM = 0x7E40   # fold-in tag that separates the throw keys from the per-round keys
 
 
+def over_seeds(fn, backend: str):
+    """fn(state, cache, key) of one run -> the same over a leading seed axis. On an accelerator a
+    vmap (one wider program). On MuJoCo C's CPU a loop over the seeds inside the program: the
+    updates already keep the cores busy, and XLA:CPU's batched matrix products were slower than
+    the seeds one after another (3 seeds: 13.4 s against 3 x 3.5 s per round, docs/BENCHMARKS.md)."""
+    if backend == "mjx":
+        return jax.vmap(fn)
+    return lambda state, cache, key: jax.lax.map(lambda a: fn(*a), (state, cache, key))
+
+
 class Practice:
     """Practice rounds and train-only rounds of one configuration; the compiled functions are
     built once here (the jit boundaries of training) and reused every round."""
@@ -117,7 +127,7 @@ class Practice:
         self.train_loop, self._train_one = None, None
         if train_steps > 0:
             self._train_one = train_loop_fn(pcfg, tcfg, train_steps, self.layout)   # one run, pure
-            self.train_loop = (jax.jit(jax.vmap(self._train_one)) if seeds
+            self.train_loop = (jax.jit(over_seeds(self._train_one, backend.name)) if seeds
                                else make_train_loop(pcfg, tcfg, train_steps, self.layout))
         self._sample_throws = jax.jit(over(lambda k: thrower.sample_throws(k, world, THROW_BLOCK * episodes)))
         self._bank = (None, None)
