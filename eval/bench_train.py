@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import resource
+import shutil
 import statistics
 import tempfile
 import time
@@ -57,10 +58,17 @@ def bench_training(name: str, seeds: int = 1, reps: int = 2, demos: int | None =
     `throws_block_s` solves the throws of THROW_BLOCK rounds, once per that many rounds).
     `demos` caps the demonstrations collected to fill the pools (they only set the pool's
     contents, not a round's cost)."""
+    scratch = tempfile.mkdtemp(prefix="ttmjx-bench-")   # the seeds' demonstrations; removed at the end
+    try:
+        return _bench(name, seeds, reps, demos, backend, log, scratch)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _bench(name: str, seeds: int, reps: int, demos: int | None, backend: str | None, log, scratch: str) -> dict:
     cfg = preset(name)
     cfg = dataclasses.replace(cfg, demos=min(cfg.demos, demos) if demos and cfg.demos else cfg.demos,
-                              backend=backend or cfg.backend,
-                              run_dir=os.path.join(tempfile.mkdtemp(prefix="ttmjx-bench-"), name))
+                              backend=backend or cfg.backend, run_dir=os.path.join(scratch, name))
     t0 = time.perf_counter()
     runs = SeedRuns(seed_configs(cfg, seeds), progress=False, log=log)
     ck = stacked([r.initial() for r in runs.runs])

@@ -173,3 +173,19 @@ def test_arms_that_differ_only_in_their_demonstrations_share_one_program(tmp_pat
     check_one_batch([arm(100, "a"), arm(98, "b")])            # 8 practice rounds each
     with pytest.raises(ValueError, match=r"differs in \['demos'\] \(and in its schedule"):
         check_one_batch([arm(100, "a"), arm(150, "b")])      # 8 against 6 rounds
+
+
+def test_the_training_benchmark_times_every_piece_of_a_batched_round():
+    """`ttmjx bench --train tiny --seeds 2`: every piece timed after its compiling call, the rates
+    from the round, the projection from the preset's schedule."""
+    from eval.bench_train import bench_training
+    out = bench_training("tiny", seeds=2, reps=1, log=lambda m: None)
+    pieces = ("throws_block", "rollout", "relabel_insert", "updates", "round", "evaluation")
+    assert all(out[f"{p}_s"] > 0 and out[f"{p}_first_call_s"] > 0 for p in pieces)
+    cfg = runconfig.tiny()
+    assert out["episodes_per_round"] == 2 * cfg.episodes_per_ssp
+    assert out["trajectories_per_s"] == pytest.approx(2 * cfg.episodes_per_ssp / out["round_s"])
+    sch = out["schedule"]
+    assert (sch["pretrain_chunks"], sch["practice_rounds"]) == (2, 4)
+    assert out["projected_run_s"] >= sch["practice_rounds"] * out["round_s"] + sch["evaluations"] * out["evaluation_s"]
+    assert out["peak_host_rss_gib"] > 0
