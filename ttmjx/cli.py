@@ -343,10 +343,11 @@ class RobotRunArgs(Report):
     """sim: charge the runner's own computation time to the simulated clock (then two runs with
     the same seed can differ by the machine's speed); off: runs are reproducible by seed."""
     timing: str | None = None
-    """sim: sensor and actuation timing of the station; None: the timing the policy was trained
-    under (the export's contract, without its per-episode randomization); or a profile of
-    ttmjx.world.config.TIMING_PROFILES: nominal (tracker 125 Hz, 10 ms; joints 250 Hz, 4 ms;
-    commands 8 ms) or zero (ideal). A timing outside the trained range is refused."""
+    """sim: sensor and actuation timing of the station; None (or export): the timing the policy was
+    trained under (the export's contract), each throw drawing its latencies and command delay
+    within the trained ranges as a cell's drift; centre: that timing fixed at its centre; or a
+    profile of ttmjx.world.config.TIMING_PROFILES: nominal (tracker 125 Hz, 10 ms; joints 250 Hz,
+    4 ms; commands 8 ms) or zero (ideal). A timing outside the trained range is refused."""
     allow_untrained_timing: Flag = False
     """sim: play a station timing outside the range the policy was trained under (the summary says so)."""
     config: str | None = None
@@ -399,7 +400,8 @@ class RobotServeArgs(Report):
     """Throws; None: the export's training world."""
     timing: str | None = None
     """Sensor and actuation timing of the station; None: with --policy the timing the policy was
-    trained under (the export's contract), without it nominal; or a profile (nominal, zero)."""
+    trained under (the export's contract, drawn per throw within its ranges), without it nominal;
+    centre (the trained timing, fixed); or a profile (nominal, zero)."""
     allow_untrained_timing: Flag = False
     """Serve a station timing outside the range the policy was trained under (the summary says so)."""
     faults: str = ""
