@@ -14,9 +14,12 @@ import numpy as np
 from ttmjx.world import observation
 from ttmjx.world.config import JOINT_NAMES, Robot, World
 
-# The real robot has no ball velocity (paper, Policy architecture): frames of joints, ball
-# position and goal only, ttmjx.world.observation's narrow layout (13 values).
+# The paper's robot frame has no ball velocity (paper, Policy architecture): joints, ball position
+# and goal, ttmjx.world.observation's narrow layout (13 values), the default. A 16-value frame adds
+# the ball velocity as the tracker gives it: the slope of the line through its two newest samples,
+# which is what the training world's timing model shows the policy too (ttmjx.world.env.sensed_frame).
 REAL_OBS_SIZE = min(observation.WIDTHS)
+OBS_SIZES = observation.WIDTHS
 # The robot an export is made for (deploy/export.py checks it at load): ABB IRB 120T on a
 # two-axis gantry, joints JOINT_NAMES. Another robot (or a changed joint order) gets a new id.
 ROBOT_MODEL_ID = "abb-irb120t-on-2axis-gantry/v1"
@@ -36,20 +39,25 @@ class Contract:
     max_speed: tuple = _ROBOT.max_speed   # per joint, m/s (gantry) or rad/s (arm)
     speed_margin: float = _ROBOT.speed_margin  # fraction of max_speed commands may use
     home: tuple = _ROBOT.home
+    home_noise: tuple = (0.0,) * 8    # per-episode start pose: home +- this (uniform), as trained
+    extrapolate_s: float = 0.02       # how far past the newest sample the runner follows its line
+                                      # (ttmjx.world.config.Timing.extrapolate_s of the training world)
 
     def __post_init__(self):
         if not self.control_hz > 0:
             raise ValueError(f"Contract.control_hz={self.control_hz}, expected > 0")
         if self.frame_stack < 1:
             raise ValueError(f"Contract.frame_stack={self.frame_stack}, expected >= 1")
-        if self.obs_size != REAL_OBS_SIZE:
-            raise ValueError(f"Contract.obs_size={self.obs_size}: the robot observes {REAL_OBS_SIZE} "
-                             f"values per frame (no ball velocity)")
+        if self.obs_size not in OBS_SIZES:
+            raise ValueError(f"Contract.obs_size={self.obs_size}: the robot's frames hold {OBS_SIZES[0]} values "
+                             f"(joints, ball position, goal) or {OBS_SIZES[1]} (with the tracker's ball velocity)")
+        if not (isinstance(self.extrapolate_s, (int, float)) and 0 <= self.extrapolate_s < 1):
+            raise ValueError(f"Contract.extrapolate_s={self.extrapolate_s!r}, expected seconds in [0, 1)")
         if not self.episode_s > 0:
             raise ValueError(f"Contract.episode_s={self.episode_s}, expected > 0")
         if tuple(self.joint_names) != JOINT_NAMES:
             raise ValueError(f"Contract.joint_names={tuple(self.joint_names)}, expected {JOINT_NAMES}")
-        for name in ("lower", "upper", "max_speed", "home"):
+        for name in ("lower", "upper", "max_speed", "home", "home_noise"):
             v = np.asarray(getattr(self, name), dtype=np.float64)
             if v.shape != (8,) or not np.all(np.isfinite(v)):
                 raise ValueError(f"Contract.{name} must be 8 finite numbers (one per joint "
@@ -58,6 +66,9 @@ class Contract:
         if np.any(lo >= hi):
             j = int(np.argmax(lo >= hi))
             raise ValueError(f"Contract: joint {JOINT_NAMES[j]} has lower={lo[j]} >= upper={hi[j]}")
+        if np.any(np.asarray(self.home_noise) < 0):
+            j = int(np.argmax(np.asarray(self.home_noise) < 0))
+            raise ValueError(f"Contract.home_noise[{JOINT_NAMES[j]}]={self.home_noise[j]}, expected >= 0")
         if np.any(np.asarray(self.max_speed) <= 0):
             j = int(np.argmax(np.asarray(self.max_speed) <= 0))
             raise ValueError(f"Contract.max_speed[{JOINT_NAMES[j]}]={self.max_speed[j]}, expected > 0")
@@ -87,8 +98,10 @@ def contract_from_world(cfg: World, control_hz: float = 20.0) -> Contract:
     """
     r = cfg.robot
     return Contract(control_hz=float(control_hz), frame_stack=cfg.frame_stack,
-                    episode_s=cfg.episode_s, lower=tuple(r.lower), upper=tuple(r.upper),
-                    max_speed=tuple(r.max_speed), speed_margin=r.speed_margin, home=tuple(r.home))
+                    obs_size=cfg.obs_size,
+                    extrapolate_s=float(cfg.timing.extrapolate_s), episode_s=cfg.episode_s, lower=tuple(r.lower), upper=tuple(r.upper),
+                    max_speed=tuple(r.max_speed), speed_margin=r.speed_margin, home=tuple(r.home),
+                    home_noise=tuple(r.home_noise))
 
 
 def contract_to_dict(c: Contract) -> dict:

@@ -44,7 +44,10 @@ class EpisodeLog:
         T = horizon
         self.horizon, self.goal = T, np.asarray(goal, np.float32)
         nan = lambda *s: np.full(s, np.nan)  # noqa: E731
-        self.obs = np.zeros((T, observation.check_width(obs_size)), np.float32)
+        # The record's 13-value frames (a 16-value policy's velocity columns are `ball_vel`, the
+        # same slope: observation.to_width(obs, 16, ball_vel) gives back what the policy saw).
+        observation.check_width(obs_size)
+        self.obs = np.zeros((T, REAL_OBS_SIZE), np.float32)
         self.ball_vel = np.zeros((T, 3), np.float32)
         self.valid = np.zeros(T, bool)
         self.t_grid, self.t_wake, self.t_sent = nan(T), nan(T), nan(T)
@@ -65,7 +68,7 @@ class EpisodeLog:
              t_wake=np.nan, t_sent=np.nan, raw_action=None) -> None:
         """Record tick n. ball/joint: the Interpolated used; frame [O]; command [8]."""
         self.t_grid[n], self.t_wake[n], self.t_sent[n] = t_grid, t_wake, t_sent
-        self.obs[n], self.ball_vel[n] = frame, ball.slope
+        self.obs[n], self.ball_vel[n] = observation.to_width(frame, REAL_OBS_SIZE), ball.slope
         self.valid[n], self.executed[n] = True, executed
         self.commands[n] = command
         if raw_action is not None:

@@ -6,8 +6,8 @@ An export is a directory of four or five files, nothing pickled:
                        leading member axis [N, ...] (N = 1 for one member):
                        `net/params/lstm0/hf/kernel`, ..., `net/params/head/bias`,
                        `norm/obs_mean`, `norm/obs_std`, `norm/act_mean`, `norm/act_std`
-  golden.safetensors   a short random-but-valid observation sequence (`frames` [L, 13],
-                       `stacks` [L, k, 13]) and the JAX policy's actions on it from a zero
+  golden.safetensors   a short random-but-valid observation sequence (`frames` [L, O],
+                       `stacks` [L, k, O]) and the JAX policy's actions on it from a zero
                        state (`member_actions` [N, L, 8], `actions` [L, 8] = their mean)
   contract.json        what the runner, the robot and the policy must agree on: format and
                        version; the robot model id and joint order, units, ranges and speed
@@ -52,7 +52,7 @@ import os
 
 import numpy as np
 
-from deploy.contract import (REAL_OBS_SIZE, ROBOT_MODEL_ID, Contract, contract_from_dict,
+from deploy.contract import (OBS_SIZES, REAL_OBS_SIZE, ROBOT_MODEL_ID, Contract, contract_from_dict,
                              contract_to_dict)
 from deploy.numpy_policy import ACTION_SIZE, NORM_FIELDS, ExportedPolicy, PolicySpec, check_tensors
 from deploy.onnx_policy import (INPUTS, IR_VERSION, OPSET, OUTPUTS, MissingExtra, OnnxPolicy,
@@ -80,10 +80,11 @@ class ExportError(ValueError):
     """An export that cannot be written, or one that must not be run (the message says why)."""
 
 
-def frame_layout() -> tuple[list[str], list[str]]:
-    """(names, units) of the robot's frame columns: ttmjx.world.observation's 13-value layout."""
-    names = observation.names(REAL_OBS_SIZE, JOINT_NAMES)
-    return names, [*JOINT_UNITS, *["m"] * (len(names) - len(JOINT_UNITS))]
+def frame_layout(width: int = REAL_OBS_SIZE) -> tuple[list[str], list[str]]:
+    """(names, units) of the robot's frame columns: ttmjx.world.observation's layout of `width`."""
+    names = observation.names(width, JOINT_NAMES)
+    units = ["m"] * 3 + (["m/s"] * 3 if width == 16 else []) + ["m"] * 2
+    return names, [*JOINT_UNITS, *units]
 
 
 # --------------------------------------------------------------------------------------------
@@ -194,10 +195,9 @@ def _spec(pcfg) -> PolicySpec:
 def export_tensors(params, pcfg, member: int | None, ensemble: bool) -> tuple[PolicySpec, dict, list]:
     """(spec, tensors with a leading [N] member axis, the source's member indices) of the
     members to export, checked against the PolicyConfig."""
-    if pcfg.obs_size != REAL_OBS_SIZE:
-        raise ExportError(f"PolicyConfig.obs_size={pcfg.obs_size}: the robot observes {REAL_OBS_SIZE} "
-                          f"values per frame (no ball velocity); only {REAL_OBS_SIZE}-value policies "
-                          f"can be exported")
+    if pcfg.obs_size not in OBS_SIZES:
+        raise ExportError(f"PolicyConfig.obs_size={pcfg.obs_size}: the robot's frames hold one of "
+                          f"{OBS_SIZES} values")
     tensors, members = select_members(*policy_tensors(params), member, ensemble)
     spec = _spec(pcfg)
     try:
@@ -222,7 +222,7 @@ def _fly(pos: np.ndarray, vel: np.ndarray, dt: float, table: Table, substeps: in
 
 
 def golden_frames(contract: Contract, table: Table, steps: int = GOLDEN_STEPS, seed: int = 0) -> np.ndarray:
-    """[steps, 13] float32 frames a robot could see at the contract's rate: joints wandering
+    """[steps, O] float32 frames (O: the contract's obs_size) a robot could see at the contract's rate: joints wandering
     from home within their ranges and speed limits, an incoming ball (gravity, table bounce),
     a goal on the opponent's half."""
     rng = np.random.default_rng(seed)
@@ -235,7 +235,7 @@ def golden_frames(contract: Contract, table: Table, steps: int = GOLDEN_STEPS, s
     goal = np.array([rng.uniform(gx0, gx1), rng.uniform(gy0, gy1)])
     frames = []
     for _ in range(steps):
-        frames.append(observation.make_frame(q, pos, goal))
+        frames.append(observation.make_frame(q, pos, goal, vel.copy() if contract.obs_size == 16 else None))
         q = np.clip(q + rng.uniform(-0.5, 0.5, 8) * step, lo, hi)
         pos, vel = _fly(pos, vel, contract.dt, table)
     return np.asarray(frames, np.float32)
@@ -267,7 +267,7 @@ def _jax_member_actions(pcfg, tensors: dict, frames: np.ndarray, stacks: np.ndar
 
 
 def golden_set(pcfg, tensors: dict, runtime: Contract, table: Table, steps: int, seed: int) -> dict:
-    """The golden file's arrays: frames [L, 13], their stacks [L, k, 13] (the runner's
+    """The golden file's arrays: frames [L, O], their stacks [L, k, O] (the runner's
     padding), the JAX members' actions [N, L, 8] and their mean [L, 8]."""
     frames = golden_frames(runtime, table, steps, seed)
     stacks = observation.frame_stack(frames[None], runtime.frame_stack)[0]
@@ -287,9 +287,10 @@ def runtime_contract(world_cfg: World, pcfg, control_hz: float | None = None) ->
         raise ExportError(f"control_hz={control_hz}, expected > 0")
     r = world_cfg.robot
     k = pcfg.frame_stack if pcfg.kind == "framestack" else world_cfg.frame_stack
-    return Contract(control_hz=hz, frame_stack=int(k), episode_s=world_cfg.episode_s,
+    return Contract(control_hz=hz, frame_stack=int(k), obs_size=int(pcfg.obs_size),
+                    extrapolate_s=float(world_cfg.timing.extrapolate_s), episode_s=world_cfg.episode_s,
                     lower=tuple(r.lower), upper=tuple(r.upper), max_speed=tuple(r.max_speed),
-                    speed_margin=r.speed_margin, home=tuple(r.home))
+                    speed_margin=r.speed_margin, home=tuple(r.home), home_noise=tuple(r.home_noise))
 
 
 def _refuse_existing(out_dir: str) -> None:
@@ -307,8 +308,12 @@ def _robot_section(r: Robot) -> dict:
 
 
 def _observation_section(spec: PolicySpec, runtime: Contract) -> dict:
-    names, units = frame_layout()
-    return {"frame_size": len(names), "frame": names, "units": units, "ball_velocity": False,
+    names, units = frame_layout(runtime.obs_size)
+    vel = runtime.obs_size == 16
+    return {"frame_size": len(names), "frame": names, "units": units, "ball_velocity": vel,
+            **({"ball_velocity_rule": "the slope of the line through the tracker's two newest samples "
+                                      "(the line the ball position is read from)"} if vel else {}),
+            "extrapolate_s": runtime.extrapolate_s,
             "frame_stack": runtime.frame_stack, "stack_order": "oldest first",
             "stack_padding": "the episode's first frame repeated",
             "timing": "joints and ball interpolated to each control deadline t0 + n / control_hz",

@@ -44,7 +44,6 @@ from deploy.interp import Interpolated, SampleBuffer
 from deploy.modes import Mode, StateMachine
 from deploy.safety import FAULTS, LATCHING, fault_names, limits_from_contract, safe_target
 from ttmjx.world import observation
-from ttmjx.world.config import Timing
 
 
 class NumpyPolicy(Protocol):
@@ -77,7 +76,8 @@ class RunnerConfig:
     max_ball_speed: float = 40.0    # m/s between two ball samples
     # Follow the last two samples this far past the newest: the world's timing model does the same
     # (ttmjx.world.config.Timing.extrapolate_s), so training sees what the runner feeds the policy.
-    max_extrapolate_s: float = Timing().extrapolate_s
+    # None: the contract's (the export's training world's).
+    max_extrapolate_s: float | None = None
     # Homing after an episode takes the joints as settled only from samples stamped this long
     # after the episode's last command: the command delay and the servos' lag (a robot still
     # catching up with its last command is not a robot moved by hand; issue #23: with 5 ms more
@@ -93,7 +93,7 @@ class RunnerConfig:
                 raise ValueError(f"RunnerConfig.{name}={getattr(self, name)}, expected > 0")
         if not 0 < self.home_speed <= 1:
             raise ValueError(f"RunnerConfig.home_speed={self.home_speed}, expected in (0, 1]")
-        if self.max_extrapolate_s < 0:
+        if self.max_extrapolate_s is not None and not self.max_extrapolate_s >= 0:
             raise ValueError(f"RunnerConfig.max_extrapolate_s={self.max_extrapolate_s}, expected >= 0")
         if self.settle_reads < 1:
             raise ValueError(f"RunnerConfig.settle_reads={self.settle_reads}, expected >= 1")
@@ -129,9 +129,11 @@ def _collector_paused():
             gc.unfreeze()
 
 
-def frame_of(joints: np.ndarray, ball: np.ndarray, goal: np.ndarray) -> np.ndarray:
-    """joints [8], ball position [3], goal [2] -> [13] float32 frame (ttmjx.world.observation)."""
-    return observation.make_frame(joints, ball, goal).astype(np.float32)
+def frame_of(joints: np.ndarray, ball: np.ndarray, goal: np.ndarray,
+             ball_vel: np.ndarray | None = None) -> np.ndarray:
+    """joints [8], ball position [3], goal [2] (and the ball velocity [3] for 16-value frames)
+    -> [13 or 16] float32 frame (ttmjx.world.observation)."""
+    return observation.make_frame(joints, ball, goal, ball_vel).astype(np.float32)
 
 
 class FrameStack:
@@ -163,7 +165,10 @@ class Runner:
 
     def __init__(self, robot: Robot, tracker: BallTracker, clock: Clock, policy: NumpyPolicy,
                  contract: Contract, config: RunnerConfig = RunnerConfig(),
-                 policy_hash: str | None = None):
+                 policy_hash: str | None = None, seed: int = 0):
+        # Start poses: the contract's home perturbed per episode within +-home_noise, as the
+        # policy was trained (paper: "the initial pose is perturbed"); exact home without noise.
+        self.pose_rng = np.random.default_rng([int(seed), 11])
         self.robot, self.tracker, self.clock, self.policy = robot, tracker, clock, policy
         self.contract, self.config = contract, config
         self.policy_hash = policy_hash or getattr(policy, "policy_hash", None) or "unknown"
@@ -200,6 +205,15 @@ class Runner:
         """ARMED -> IDLE (e.g. after NoBallError)."""
         self.sm.require(Mode.ARMED, action="disarm()")
         self.sm.to(Mode.IDLE, self.clock.now(), "disarm")
+
+    def start_pose(self) -> np.ndarray | None:
+        """[8] the next episode's start pose: home + U(-1, 1) * contract.home_noise, within the
+        joint ranges; None (exact home) if the contract has no noise."""
+        noise = np.asarray(self.contract.home_noise, np.float64)
+        if not noise.any():
+            return None
+        q = self.home + self.pose_rng.uniform(-1.0, 1.0, 8) * noise
+        return np.clip(q, self.limits.lower, self.limits.upper)
 
     def move_home(self, pose=None) -> bool:
         """IDLE or HOLD -> HOMING -> ARMED (True), or -> HOLD on a fault or timeout (False).
@@ -256,7 +270,8 @@ class Runner:
         episodes = []
         with _collector_paused() as paused:
             for i, goal in enumerate(check_goals(goals)):
-                if self.mode == Mode.HOLD or not self.move_home(None if poses is None else poses[i]):
+                pose = self.start_pose() if poses is None else poses[i]
+                if self.mode == Mode.HOLD or not self.move_home(pose):
                     break
                 t_start = on_armed(i) if on_armed is not None else None
                 try:
@@ -370,7 +385,14 @@ class Runner:
         return FAULTS["ball_stale"] if now - self.ball.newest_time > self.config.stale_s else 0
 
     def _at(self, buf: SampleBuffer, t: float) -> Interpolated:
-        return buf.at(t, self.config.max_extrapolate_s) if len(buf) else _missing(buf.dim)
+        ext = self.contract.extrapolate_s if self.config.max_extrapolate_s is None else self.config.max_extrapolate_s
+        return buf.at(t, ext) if len(buf) else _missing(buf.dim)
+
+    def _frame(self, joint: Interpolated, ball: Interpolated, goal: np.ndarray) -> np.ndarray:
+        """The policy's frame: a 16-value contract adds the tracker's ball velocity, the slope of
+        the line the ball's position was read from (what the training world shows)."""
+        vel = ball.slope if self.contract.obs_size == 16 else None
+        return frame_of(joint.value, ball.value, goal, vel)
 
     # ------------------------------------------------------------------ output
     def _send(self, target: np.ndarray, now: float) -> None:
@@ -590,7 +612,7 @@ class Runner:
         """Log tick m, whose deadline has passed, from the buffered samples; its frame enters
         the stack; the robot holds its target."""
         joint, ball = self._at(self.joints, t_grid), self._at(self.ball, t_grid)
-        frame = frame_of(joint.value, ball.value, goal)
+        frame = self._frame(joint, ball, goal)
         stack.push(frame)
         log.tick(m, t_grid=t_grid, frame=frame, ball=ball, joint=joint, command=self.last_target,
                  faults=faults, executed=False)
@@ -599,7 +621,7 @@ class Runner:
               goal: np.ndarray, faults: int) -> int:
         """One executed tick: frame -> policy -> filter -> send. Returns its fault bits."""
         joint, ball = self._at(self.joints, t_grid), self._at(self.ball, t_grid)
-        frame = frame_of(joint.value, ball.value, goal)
+        frame = self._frame(joint, ball, goal)
         frames = stack.push(frame)
         raw = None
         if not faults & LATCHING:

@@ -263,6 +263,11 @@ class SimStation:
         self.ball_every = self._steps_per(timing.tracker_hz, "tracker_hz")
         self.joint_latency_s, self.tracker_latency_s = timing.joint_latency_s, timing.tracker_latency_s
         self.action_delay_s = timing.action_delay_s
+        # A timing with per-episode spreads (Timing.spreads) drifts: each throw draws its latencies
+        # and command delay as the training world does (ttmjx.world.timing.draw), from its own
+        # stream so that a fixed timing's session is unchanged.
+        self._drift_rng = np.random.default_rng([seed, 7])
+        self.delays_log: list[tuple[float, float, float]] = []
         self.joint_offset = 0      # joint samples at physics steps n = joint_offset (mod joint_every)
         self.noise_m, self.rng = tracker_noise_m, np.random.default_rng(seed)
         self.ramp_s = float(ramp_s if ramp_s is not None else (contract.dt if contract else cfg.control_dt))
@@ -330,9 +335,10 @@ class SimStation:
         """A command sent at `now` (all 8 joints, or `part` of PARTS alone: the arm and the
         gantry are separate controllers): each part's ramp starts action_delay_s later, from
         where that part's earlier commands have its target then."""
-        start = now + self.action_delay_s
         q = np.asarray(q, np.float64)
         for name in PARTS if part is None else (part,):
+            # A shorter delay drawn for a new throw never starts a command before an earlier one.
+            start = max(now + self.action_delay_s, self._ramps[name][-1][0])
             p = PARTS[name]
             q_p = q[p] if part is None else q
             lo, hi = np.asarray(self.cfg.robot.lower)[p], np.asarray(self.cfg.robot.upper)[p]
@@ -398,12 +404,24 @@ class SimStation:
         now = self.sync()
         if self.in_flight:
             self._park()
+        self._draw_delays()
         step = max(math.ceil((now + float(delay_s) - self.t_origin) / self.dt - 1e-9), self.n)
         t_launch = self.t_origin + step * self.dt
         self.pending = (t_launch, throw)
         if self._launch_if_due():
             self._sample_ball(self.time)
         return t_launch
+
+    def _draw_delays(self) -> None:
+        """This throw's tracker latency, joint latency and command delay: the timing's centre,
+        each shifted by a uniform draw within its spread (Timing.spreads), never below zero."""
+        tm = self.timing
+        spreads = np.asarray(tm.spreads())
+        if spreads.max() > 0:
+            base = np.array([tm.tracker_latency_s, tm.joint_latency_s, tm.action_delay_s])
+            ball, joint, act = np.maximum(base + self._drift_rng.uniform(-1.0, 1.0, 3) * spreads, 0.0)
+            self.tracker_latency_s, self.joint_latency_s, self.action_delay_s = float(ball), float(joint), float(act)
+        self.delays_log.append((self.tracker_latency_s, self.joint_latency_s, self.action_delay_s))
 
     def _launch(self, t: float) -> None:
         self._fold_track()
@@ -701,7 +719,7 @@ def play_session(loaded: Loaded, goals, out_dir: str | None = None, seed: int = 
     goals = check_goals(goals)
     clock = MonotonicClock() if realtime else SimClock(charge_compute=charge_compute)
     station = SimStation(loaded.cfg, loaded.contract, clock=clock, seed=seed, timing=tm)
-    runner = Runner(station.robot, station.tracker, clock, loaded.policy, loaded.contract, config)
+    runner = Runner(station.robot, station.tracker, clock, loaded.policy, loaded.contract, config, seed=seed)
     if out_dir is not None:
         os.makedirs(out_dir, exist_ok=True)
     station.prefetch()
@@ -710,7 +728,10 @@ def play_session(loaded: Loaded, goals, out_dir: str | None = None, seed: int = 
     out = summarize(runner, station, episodes, goals, time.perf_counter() - wall)
     out.update({"policy": loaded.policy_dir, "self_test_error": loaded.policy.self_test_error,
                 "distribution": loaded.cfg.throws.name, "out": out_dir, "seed": seed,
-                "timing": files.json_safe(timing_info)})
+                "timing": files.json_safe(timing_info),
+                # each throw's (tracker latency, joint latency, command delay), s: drawn per throw
+                # within the timing's spreads, or its fixed values
+                "throw_delays_s": [list(d) for d in station.delays_log]})
     if out_dir is not None:
         files.write_json(os.path.join(out_dir, "session.json"), out, indent=1)
     return out

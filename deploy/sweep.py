@@ -67,6 +67,7 @@ def latency_sweep(policy_dir: str, goals: np.ndarray, out_dir: str, added_ms, se
         raise ValueError(f"{len(jitter_ms)} jitter points for {len(added_ms)} latency points")
     loaded = load_for_station(policy_dir)                 # verified and built once for every point
     base, source = station_timing(loaded.timing, profile)
+    base = base.centre()                 # each point adds to a fixed timing: no per-throw drift
     os.makedirs(out_dir, exist_ok=True)
     out = {"policy": policy_dir, "profile": source, "base_timing": to_dict(base),
            "trained_ranges": loaded.timing["ranges"], "goals": int(len(goals)), "seed": seed,

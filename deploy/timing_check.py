@@ -78,13 +78,18 @@ def trained_timing(doc: dict, directory: str = "") -> dict:
 
 
 def station_timing(record: dict, name: str | None = None) -> tuple[Timing, str]:
-    """(the station's Timing, where it came from): name None or 'export' is the trained model's
-    centre (no randomization); otherwise a TIMING_PROFILES name (TimingError if unknown)."""
+    """(the station's Timing, where it came from): name None or 'export' is the trained model
+    itself, so a simulated station drifts per throw within the trained ranges (SimStation draws
+    each throw's delays, as a real cell's drift with load); 'centre' is the trained model without
+    its per-episode randomization; otherwise a TIMING_PROFILES name (TimingError if unknown)."""
     if name is None or name == "export":
-        return record["timing"].centre(), "export"
+        return record["timing"], "export"
+    if name == "centre":
+        return record["timing"].centre(), "centre"
     if name not in TIMING_PROFILES:
         raise TimingError(f"unknown station timing profile {name!r}; expected 'export' (the timing the "
-                          f"policy was trained under, the default) or one of {', '.join(TIMING_PROFILES)}")
+                          f"policy was trained under, drawn per throw: the default), 'centre' (its centre, "
+                          f"fixed) or one of {', '.join(TIMING_PROFILES)}")
     return TIMING_PROFILES[name], name
 
 

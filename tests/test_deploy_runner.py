@@ -142,8 +142,12 @@ def test_contract_validates_and_round_trips():
     c = contract_from_world(World(), control_hz=60)
     assert c.dt == pytest.approx(1 / 60) and c.horizon == 96 and c.frame_stack == 8
     assert contract_from_dict(json.loads(json.dumps(contract_to_dict(c)))) == c
-    with pytest.raises(ValueError, match="obs_size=16"):
-        Contract(obs_size=16)
+    assert c.home_noise == World().robot.home_noise and c.extrapolate_s == World().timing.extrapolate_s
+    assert Contract(obs_size=16).obs_size == 16          # the tracker's velocity added
+    with pytest.raises(ValueError, match="obs_size=15"):
+        Contract(obs_size=15)
+    with pytest.raises(ValueError, match="home_noise"):
+        Contract(home_noise=(-0.1,) * 8)
     with pytest.raises(ValueError, match="j2 has lower"):
         Contract(lower=(-1, -1, -1, 2, -1, -1, -1, -1))
     with pytest.raises(ValueError, match="home"):
@@ -377,7 +381,7 @@ def test_episodes_are_saved_as_trajectory_records(tmp_path):
         assert x["joint_q"].shape[1] == 8 and len(x["joint_t"]) >= CONTRACT.horizon - 2
         # The observation is reproducible from the two logged samples it came from.
         (lo, hi), (t_lo, t_hi) = x["ball_used_xyz"].transpose(1, 0, 2), x["ball_used_t"].T
-        ext = RunnerConfig().max_extrapolate_s
+        ext = CONTRACT.extrapolate_s   # RunnerConfig.max_extrapolate_s None: the contract's
         s = (np.clip(x["t_grid"], t_lo, t_hi + ext) - t_lo) / (t_hi - t_lo)
         np.testing.assert_allclose(observation.ball_pos(back.traj.obs[0]), lo + s[:, None] * (hi - lo), atol=1e-5)
     with pytest.raises(FileExistsError):

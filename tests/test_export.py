@@ -194,9 +194,9 @@ def test_export_refuses_bad_requests(tmp_path, ensemble_export):
         export(ens, LSTM, World(), str(tmp_path / "a"), member=2)
     with pytest.raises(ExportError, match="do not match the PolicyConfig"):
         export(ens, PolicyConfig(hidden=16, layers=2), World(), str(tmp_path / "a"), member=0)
-    p16 = PolicyConfig(hidden=8, layers=1, obs_size=16)
-    with pytest.raises(ExportError, match="13 values"):
-        export(random_params(p16), p16, World(), str(tmp_path / "a"))
+    p16 = PolicyConfig(hidden=8, layers=1, obs_size=16)    # the tracker's velocity: exported, not refused
+    with pytest.raises(ExportError, match="do not match the PolicyConfig"):
+        export(random_params(p16), PolicyConfig(hidden=8, layers=1), World(), str(tmp_path / "a"))
     with pytest.raises(FileExistsError, match="refusing to overwrite"):
         export(ens, LSTM, World(), ensemble_export[0], ensemble=True)
 
@@ -295,7 +295,9 @@ def test_tampered_or_mismatched_exports_are_refused(ensemble_export, tmp_path):
         d, lambda c: c["normalization"]["per_member"]["obs_std"][0].__setitem__(0, 2.0)))
     case("not an export", "not a ttmjx-policy-export", lambda d: _edit_contract(d, lambda c: c.__setitem__("format", "x")))
     case("runtime contract", "invalid runtime", lambda d: _edit_contract(
-        d, lambda c: c["runtime"].__setitem__("obs_size", 16)))
+        d, lambda c: c["runtime"].__setitem__("obs_size", 15)))
+    case("runtime frame of another width", "the policy reads 13 values per frame, the robot gives 16",
+         lambda d: _edit_contract(d, lambda c: c["runtime"].__setitem__("obs_size", 16)))
     case("unknown runtime key", "invalid runtime", lambda d: _edit_contract(
         d, lambda c: c["runtime"].__setitem__("pickle", True)))
     for i, (name, match, mutate) in enumerate(cases):

@@ -12,6 +12,7 @@ import os
 import shutil
 
 import jax
+import numpy as np
 import pytest
 
 from deploy.export import CONTRACT_FILE, MANIFEST_FILE, export, load_export, read_contract
@@ -80,8 +81,11 @@ def test_the_contract_records_the_trained_timing_and_its_ranges_hashed(exports):
 
 def test_the_station_plays_the_trained_timing_and_refuses_what_is_outside(exports):
     cell, ideal = (trained_timing(read_contract(exports[k])) for k in ("cell", "ideal"))
-    tm, src = station_timing(cell, None)
-    assert src == "export" and tm == TIMING_PROFILES["nominal"] and not outside_trained(cell, tm)
+    drifting, src = station_timing(cell, None)
+    assert src == "export" and drifting.centre() == TIMING_PROFILES["nominal"] and max(drifting.spreads()) > 0
+    assert not outside_trained(cell, drifting)
+    tm, src = station_timing(cell, "centre")
+    assert src == "centre" and tm == TIMING_PROFILES["nominal"] and not outside_trained(cell, tm)
     assert not outside_trained(cell, dataclasses.replace(tm, action_delay_s=0.017))
     late = dataclasses.replace(tm, action_delay_s=0.030)
     assert [s.split()[0] for s in outside_trained(cell, late)] == ["action_delay_s"]
@@ -128,7 +132,18 @@ def test_robot_run_plays_the_trained_timing_by_default_and_says_when_overridden(
     main([*run, "--policy", exports["cell"]])
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["episodes"] == 1 and out["timing"]["source"] == "export" and out["timing"]["within_trained"]
+    # by default the station drifts as the policy was trained: each throw draws its delays within
+    # the trained ranges; `--timing centre` plays the trained centre, fixed
+    assert out["timing"]["station"] == dataclasses.asdict(CELL_TRAINING)
+    ranges = trained_timing(read_contract(exports["cell"]))["ranges"]
+    (ball, joint, act), = out["throw_delays_s"]
+    for v, name in ((ball, "tracker_latency_s"), (joint, "joint_latency_s"), (act, "action_delay_s")):
+        assert ranges[name][0] <= v <= ranges[name][1]
+    assert (ball, joint, act) != (0.010, 0.004, 0.008)
+    main([*run, "--policy", exports["cell"], "--timing", "centre"])
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["timing"]["station"] == dataclasses.asdict(TIMING_PROFILES["nominal"])
+    assert out["throw_delays_s"] == [[0.010, 0.004, 0.008]]
     main([*run[:-1], "--policy", exports["ideal"], "--timing", "nominal", "--allow-untrained-timing"])
     text = capsys.readouterr().out
     assert "TIMING OUTSIDE THE TRAINED RANGE" in text
@@ -143,3 +158,32 @@ def test_the_action_delay_can_spread_on_its_own():
     rec = trained_timing({"timing": timing_record(tm)})
     assert not outside_trained(rec, dataclasses.replace(TIMING_PROFILES["nominal"], action_delay_s=0.025))
     assert outside_trained(rec, dataclasses.replace(TIMING_PROFILES["nominal"], tracker_latency_s=0.025))
+
+
+def test_a_16_value_export_plays_with_the_trackers_velocity_and_its_extrapolation(tmp_path):
+    """The GPU presets observe the ball velocity (16 values): their export plays on the station,
+    the runner giving the slope of the tracker's two newest samples (what the training world's
+    timing model shows), and following the line as far as the training world did."""
+    from deploy.episode_log import load_episode
+    from deploy.station import run_sim
+    from ttmjx.world import observation
+    pcfg = PolicyConfig(hidden=8, layers=1, obs_size=16)
+    params = init_params(jax.random.key(0), pcfg, identity_normalizer(16))
+    tm = dataclasses.replace(CELL_TRAINING, extrapolate_s=0.05)
+    ex = export(params, pcfg, World(ball_velocity_obs=True, timing=tm), str(tmp_path / "ex16"),
+                control_hz=20, source="random-init")
+    runtime = read_contract(ex)["runtime"]
+    assert runtime["obs_size"] == 16 and runtime["extrapolate_s"] == 0.05
+    out = run_sim(ex, [[0.7, 0.3]], str(tmp_path / "log"), seed=2)
+    assert out["episodes"] == 1
+    ep = load_episode(str(tmp_path / "log"), "episode_0000")
+    x = ep.extras
+    obs = observation.to_width(ep.traj.obs[0], 16, ep.traj.ball_vel[0])   # what the policy saw
+    assert ep.traj.obs.shape[-1] == 13
+    (lo, hi), (t_lo, t_hi) = x["ball_used_xyz"].transpose(1, 0, 2), x["ball_used_t"].T
+    seen = t_hi > t_lo                                    # ticks whose line has two samples
+    assert seen.sum() > 10
+    slope = (hi - lo) / (t_hi - t_lo)[:, None]
+    np.testing.assert_allclose(obs[seen][:, observation.BALL_VEL], slope[seen], rtol=1e-4, atol=1e-3)
+    s = (np.clip(x["t_grid"], t_lo, t_hi + 0.05) - t_lo) / np.where(seen, t_hi - t_lo, 1.0)
+    np.testing.assert_allclose(observation.ball_pos(obs)[seen], (lo + s[:, None] * (hi - lo))[seen], atol=1e-5)
