@@ -24,14 +24,17 @@ from __future__ import annotations
 import dataclasses
 import os
 import sys
+import time
 
 import jax
+import jax.numpy as jnp
 
 from eval import ablate
 from eval import cells as cellrun
 from eval import tables as report
-from eval.evaluate import evaluate_uniform
+from eval.evaluate import uniform_runs
 from training import runconfig
+from ttmjx.world import files
 from training.baselines import agents
 from training.baselines.config import RewardConfig
 from training.runconfig import RunConfig
@@ -64,16 +67,15 @@ def tiny_rl() -> dict:
                                      num_updates_per_batch=1, value_hidden=(16,)),
                 sac=agents.SACConfig(num_envs=2, batch_size=8, grad_updates_per_step=1, min_replay_size=16,
                                      max_replay_size=4096),
-                es=agents.ESConfig(population_size=1), num_evals=3, num_eval_envs=1)
+                es=agents.ESConfig(population_size=1), num_evals=3, num_eval_envs=1, throw_pool=2)
 
 
 def method_config(method: str, scale: str, seed: int, run_dir: str, trajectories: int | None = None,
                   reward: RewardConfig = RewardConfig()):
     """The cell's configuration: a BaselineConfig (RL) or a RunConfig; ValueError naming the
-    method and the problem (a budget below one batch included). An RL cell's
-    run.total_trajectories is what brax runs exactly: the largest whole number of trajectories
-    not above the budget that its batches and epochs fill (agents.fit_budget; the budget asked
-    for is its requested_trajectories)."""
+    method and the problem. An RL cell runs exactly its budget: one that no whole number of the
+    method's batches fills (or below one batch) is refused, naming the nearest budgets that are
+    (agents.schedule)."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {METHODS}")
     base = goalseye_base(scale)
@@ -84,7 +86,7 @@ def method_config(method: str, scale: str, seed: int, run_dir: str, trajectories
         if method in RL:
             run = agents.run_config(method, base)
             settings = tiny_rl() if scale == "tiny" else {"num_evals": 8}
-            return agents.fit_budget(agents.BaselineConfig(method, run, reward=reward, **settings))
+            return agents.BaselineConfig(method, run, reward=reward, **settings)
         overrides = {"gcsl": {"demos": 0, "pretrain_steps": 0, "preset": "gcsl"},
                      "lfp": {"practice": False, "demos": ablate.ALL_TRAJECTORIES,
                              "pretrain_steps": ablate.GOALSEYE_UPDATES, "preset": "lfp"},
@@ -117,25 +119,48 @@ def rl_trainer(cfg: agents.BaselineConfig, progress: bool = True) -> cellrun.Out
     """brax's trainer for cfg.method, a strict-metric curve point wherever it hands its policy
     out (at 0 and after each of its epochs; x: brax's environment steps / horizon, which need
     not be whole inside SAC's run), the policy saved as a checkpoint of cfg.run whose counter
-    is the trajectories brax ran, then the cells' final evaluation of it."""
-    run = cfg.run
-    backend = Backend(run.world, resolve_backend(run.backend))
-    h = run.world.horizon
-    curve = []
+    is the trajectories brax ran, then the cells' final evaluation of it.
 
-    def on_policy(steps: int, params):
-        m = evaluate_uniform(run.world, run.policy, params, backend, jax.random.PRNGKey(run.seed + 1),
-                             run.eval_goals)
+    The curve's policies are kept during training and scored together at the end, every point
+    on the same goals and throws (key run.seed + 1) in one batched rollout (`curve_metrics`):
+    one episode's latency instead of one per point. Where the time went is written to
+    RUN/timing.json (brax's epochs, the curve, the save, the final evaluation)."""
+    run = cfg.run
+    h = run.world.horizon
+    points, timing = [], {}
+    params = agents.train(cfg, lambda steps, p: points.append((steps, p)), timing=timing)
+    t = time.perf_counter()
+    backend = Backend(run.world, resolve_backend(run.backend))
+    metrics = curve_metrics(cfg, [p for _, p in points], backend)
+    timing["curve_eval_s"] = round(time.perf_counter() - t, 3)
+    curve = []
+    for (steps, _), m in zip(points, metrics):
         x = steps // h if steps % h == 0 else round(steps / h, 3)
         curve.append({"trajectories": x, "env_steps": steps, "updates": 0, "cache_size": 0, **m})
         if progress:
             log(f"[baseline] {cfg.method} {x:,} trajectories: "
                 f"<=30cm {m['within_30cm']:.1%} hit {m['hit_rate']:.1%}", file=sys.stderr)
-
-    params = agents.train(cfg, on_policy)
-    agents.save_policy(cfg, params, run.total_trajectories)     # method_config fitted it to what brax ran
+    t = time.perf_counter()
+    agents.save_policy(cfg, params, run.total_trajectories)     # what brax ran: schedule() is exact
+    timing["save_s"] = round(time.perf_counter() - t, 3)
+    t = time.perf_counter()
     final, landings = cellrun.final_evaluation(run.run_dir)
+    timing["final_eval_s"] = round(time.perf_counter() - t, 3)
+    timing["env_steps"] = agents.schedule(cfg).num_timesteps
+    files.write_json(os.path.join(run.run_dir, "timing.json"), timing)
     return cellrun.Outcome(True, 0, final, curve, landings)
+
+
+def curve_metrics(cfg: agents.BaselineConfig, policies: list, backend: Backend) -> list[dict]:
+    """Strict-metric goal_metrics of each policy (PolicyParams of one member) on run.eval_goals
+    uniform goals from key run.seed + 1 (the same goals and throws for every point), all
+    points in one rollout (eval.evaluate.uniform_runs): what evaluate_uniform gives for each."""
+    if not policies:
+        return []
+    run = cfg.run
+    stacked = jax.tree.map(lambda *x: jnp.stack([jnp.asarray(a) for a in x]), *policies)
+    keys = jnp.stack([jax.random.PRNGKey(run.seed + 1)] * len(policies))
+    return uniform_runs(run.world, run.policy, stacked, backend, keys, run.eval_goals)[0]
 
 
 def trainer(cfg, progress: bool = True) -> cellrun.Outcome:

@@ -8,6 +8,7 @@ import dataclasses
 import json
 import math
 import os
+import re
 
 import jax
 import jax.numpy as jnp
@@ -132,29 +133,119 @@ def brax_steps(method: str, cfg, num_timesteps: int, num_evals: int) -> int:
     return math.ceil(num_timesteps / per_epoch) * per_epoch
 
 
-def test_brax_runs_exactly_the_recorded_budget():
-    """brax rounds num_timesteps up to whole epochs (PPO asked for 120k ran 143,360 trajectories);
-    the schedule makes it run exactly the cell's total_trajectories: the largest whole number not
-    above the budget asked for."""
+def exact(cfg, trajectories: int) -> bool:
+    """Whether brax runs `trajectories` whole trajectories for some num_timesteps: prefill plus a
+    whole number (>= 1) of the method's environment steps per batch, written out from brax's
+    trainers independently of agents.schedule."""
+    h = cfg.run.world.horizon
+    if cfg.method == "ppo":
+        prefill, unit = 0, cfg.ppo.batch_size * cfg.ppo.unroll_length * cfg.ppo.num_minibatches
+    elif cfg.method == "sac":
+        prefill, unit = -(-cfg.sac.min_replay_size // cfg.sac.num_envs) * cfg.sac.num_envs, cfg.sac.num_envs
+    else:
+        prefill, unit = 0, 2 * cfg.es.population_size * h
+    return trajectories * h > prefill and (trajectories * h - prefill) % unit == 0
+
+
+def test_brax_runs_exactly_the_budget_or_refuses_it():
+    """brax rounds num_timesteps up to whole epochs (PPO asked for 120k once ran 143,360
+    trajectories; 20,000 once became 16,384 silently): a budget is run exactly, or refused with
+    the nearest budgets that are exact, and nothing exact lies between them. Table I's 120,000
+    is exact for every method."""
     naive = baselines.method_config("ppo", "full", 0, "r", trajectories=120_000)
-    assert brax_steps("ppo", naive, 120_000 * 160, 8) == 143_360 * 160      # what the audit found
+    assert brax_steps("ppo", naive, 120_000 * 160 + 1, 8) > 120_000 * 160      # brax alone rounds up
     for method in agents.METHODS:
-        for budget in (4_097, 120_000, 123_457, 1_000_000, 35_000_000):
-            cfg = baselines.method_config(method, "full", 0, "r", trajectories=budget)
+        for budget in (4_097, 120_000, 123_457, 240_000, 1_000_001, 35_000_000):
+            try:
+                cfg = baselines.method_config(method, "full", 0, "r", trajectories=budget)
+            except ValueError as e:
+                nums = [int(x.replace(",", "")) for x in re.findall(r"\d[\d,]*\d|\d", str(e).split("nearest budgets are")[-1])]
+                assert len(nums) == 2 and "nearest budgets" in str(e) and f"{budget:,}" in str(e), str(e)
+                below, above = nums
+                assert below < budget < above, (method, budget, nums)
+                base = baselines.method_config(method, "full", 0, "r", trajectories=below)
+                assert exact(base, below) and exact(base, above) and not exact(base, budget)
+                assert not any(exact(base, t) for t in range(below + 1, above)), (method, budget)
+                baselines.method_config(method, "full", 0, "r", trajectories=above)   # accepted
+                continue
             s, h = agents.schedule(cfg), cfg.run.world.horizon
+            assert exact(cfg, budget), (method, budget)
             ran = brax_steps(method, cfg, s.num_timesteps, s.num_evals)
-            assert ran == s.num_timesteps == cfg.run.total_trajectories * h == cfg.steps, (method, budget)
-            assert cfg.run.total_trajectories <= budget == cfg.requested_trajectories
-            # the largest: one more batch (with as many batches as make whole trajectories) is over
-            prefill, unit = agents._units(cfg)
-            period = h // math.gcd(unit, h)
-            assert prefill + (s.units + period) * unit > budget * h, (method, budget)
+            assert ran == s.num_timesteps == budget * h == cfg.steps, (method, budget)
+            assert cfg.run.total_trajectories == budget
             assert s.num_evals >= 2 and s.units % (s.num_evals - 1) == 0
-            assert agents.fit_budget(cfg) == cfg                             # fitted once for all
-    exact = baselines.method_config("sac", "full", 0, "r", trajectories=120_000)
-    assert exact.run.total_trajectories == 120_000
-    with pytest.raises(ValueError, match="below one batch"):
-        baselines.method_config("ppo", "full", 0, "r", trajectories=4_095)
+    for method in agents.METHODS:
+        assert baselines.method_config(method, "full", 0, "r").run.total_trajectories == 120_000
+    with pytest.raises(ValueError, match="below one batch of ppo .*smallest budget is 4,000"):
+        baselines.method_config("ppo", "full", 0, "r", trajectories=3_999)
+
+
+def test_cli_refuses_an_inexact_budget_with_one_line(tmp_path, capsys):
+    """`ttmjx baseline` exits 2 with one line naming the nearest budgets, before writing anything."""
+    from ttmjx.cli import main
+    out = tmp_path / "table"
+    with pytest.raises(SystemExit) as e:
+        main(["baseline", "ppo", "--seeds", "2", "--trajectories", "123457", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1, err
+    assert err[0].startswith("ttmjx baseline: error: ") and "123,457" in err[0]
+    assert "120,000 and 124,000" in err[0], err[0]
+    assert not out.exists()
+
+
+def test_throws_are_solved_ahead_and_never_reused(monkeypatch):
+    """FreshAutoReset: every episode of every environment starts from a throw of its own, drawn
+    from a pool solved `pool` episodes at a time (refilled when used up), and its reset state
+    carries exactly the info brax's EpisodeWrapper gives (plus its own keys)."""
+    from brax.envs.base import Env, State
+    from brax.envs.wrappers.training import EpisodeWrapper, VmapWrapper
+
+    from training.baselines.env import wrap_fresh
+    from ttmjx.world import thrower
+    solves = []
+
+    def fake_throws(key, cfg, n):            # the pool's logic, not the solver, is under test
+        solves.append(n)
+        x = jax.random.normal(key, (4, n, 3))
+        return thrower.Throw(*x)
+    monkeypatch.setattr(thrower, "sample_throws", fake_throws)
+
+    class Stub(Env):
+        """Episodes of 3 steps whose observation is the throw's launch velocity."""
+        cfg = WORLD
+
+        def reset_with(self, rng, th):
+            z = jnp.zeros(())
+            return State(pipeline_state={"t": jnp.int32(0)}, obs=th.launch_vel, reward=z, done=z,
+                         metrics={"r_goal": z}, info={})
+
+        def reset(self, rng):
+            return self.reset_with(rng, thrower.Throw(*jax.random.normal(rng, (4, 3))))
+
+        def step(self, state, action):
+            t = state.pipeline_state["t"] + 1
+            return state.replace(pipeline_state={"t": t}, done=(t >= 3).astype(jnp.float32))
+
+        observation_size, action_size, backend = 3, 1, "stub"
+
+    n, pool, episodes = 4, 2, 7
+    env = wrap_fresh(Stub(), episode_length=3, pool=pool)
+    keys = jax.random.split(jax.random.PRNGKey(0), n)
+    s0 = env.reset(keys)
+    ref = EpisodeWrapper(VmapWrapper(Stub()), 3, 1).reset(keys)
+    mine = {k: v for k, v in s0.info.items() if k not in ("reset_key", "throw_pool", "throw_next")}
+    assert jax.tree.structure(mine) == jax.tree.structure(ref.info)
+    assert jax.tree.map(jnp.shape, mine) == jax.tree.map(jnp.shape, ref.info)
+
+    def run(s, _):
+        s = env.step(s, jnp.zeros((n, 1)))
+        return s, s.obs
+    _, obs = jax.jit(lambda s: jax.lax.scan(run, s, None, length=3 * episodes))(s0)
+    starts = np.concatenate([np.asarray(s0.obs)[None], np.asarray(obs)[2::3]])   # each episode's throw
+    assert starts.shape == (episodes + 1, n, 3)
+    flat = starts.reshape(-1, 3)
+    assert len(np.unique(flat.round(6), axis=0)) == len(flat), "a throw was used twice"
+    assert solves and set(solves) == {n * pool}          # solved in batches of n x pool, never one by one
 
 
 def test_replicated_state_is_placed_as_brax_pmap_places_its_outputs():
@@ -198,8 +289,10 @@ def test_trains_evaluates_and_exports(method, tmp_path, monkeypatch):
     out = str(tmp_path / "table")
     n = 4 if method == "es" else 2    # ES: 2 episodes per epoch, 2 epochs
     summary = baselines.run([method], "tiny", 1, out, trajectories=n, progress=False)
-    # brax's evaluator ran at each of the 3 curve points on one compiled unroll (agents._plain)
-    assert len(evaluators) == 1 and evaluators[0]._generate_eval_unroll._cache_size() == 1
+    # SAC, ES: brax's evaluator ran at each of the 3 curve points on one compiled unroll
+    # (agents._plain); PPO: brax's evaluator is off (the strict-metric curve replaces it)
+    assert len(evaluators) == 1
+    assert evaluators[0]._generate_eval_unroll._cache_size() == (0 if method == "ppo" else 1)
     result = json.load(open(os.path.join(out, "results", f"{method}-seed0.json")))
     assert result["final"]["goals"] == tiny().eval_goals and 0 <= result["final"]["hit_rate"] <= 1
     assert result["config"]["method"] == method and result["config"]["run"]["total_trajectories"] == n
@@ -212,6 +305,19 @@ def test_trains_evaluates_and_exports(method, tmp_path, monkeypatch):
     loaded = load_checkpoint(run_dir)
     assert loaded.cfg.preset == f"baseline-{method}" and int(loaded.ck.counters.trajectories) == n
     assert loaded.cfg.total_trajectories == n
+    # the curve's points, scored together at the end, are what evaluate_uniform gives each policy:
+    # the last one is the saved policy
+    from eval.evaluate import evaluate_uniform
+    from ttmjx.world.backends import Backend, resolve_backend
+    cfg = loaded.cfg
+    last = evaluate_uniform(cfg.world, cfg.policy, jax.tree.map(lambda x: x[0], loaded.params),
+                            Backend(cfg.world, resolve_backend(cfg.backend)), jax.random.PRNGKey(cfg.seed + 1),
+                            cfg.eval_goals)
+    got = {k: math.nan if result["curve"][-1][k] is None else result["curve"][-1][k] for k in last}
+    assert got == pytest.approx(last, nan_ok=True)
+    timing = json.load(open(os.path.join(run_dir, "timing.json")))
+    assert [p[0] for p in timing["points"]] == [p["env_steps"] for p in result["curve"]]
+    assert timing["env_steps"] == n * WORLD.horizon and timing["train_s"] > 0
     metrics = evaluate_checkpoint(run_dir, goals="4")
     assert metrics["goals"] == 4 and set(metrics) >= {"within_30cm", "within_20cm", "hit_rate"}
     policy, contract = load_export(export_checkpoint(run_dir, str(tmp_path / "export")))

@@ -15,18 +15,25 @@ Configuration choices (the rest are brax's defaults):
 * `wrap_env_fn=wrap_fresh`: brax's AutoResetWrapper replays each environment's first throw and
   goal forever (training/baselines/env.py);
 * the trajectory budget N is N * horizon environment steps (GoalEnv's episodes are `horizon`
-  steps long). brax rounds num_timesteps UP to whole evaluation epochs (PPO asked for 120,000
-  trajectories ran 143,360), so `schedule` chooses brax's num_timesteps and num_evals such that
-  brax's own arithmetic (`brax_env_steps`, a copy of it) runs the largest whole number of
-  trajectories not above the budget, in epochs of equal length; `fit_budget` records that
-  number as the run's total_trajectories (cell JSON, checkpoint counter, curves) and the request
-  beside it. A budget below one batch of the method is refused before anything runs;
+  steps long), run exactly or refused: brax rounds num_timesteps UP to whole evaluation epochs
+  (PPO asked for 120,000 trajectories ran 143,360), so `schedule` chooses brax's num_timesteps
+  and num_evals such that brax's own arithmetic (`brax_env_steps`, a copy of it) runs exactly N
+  trajectories in epochs of equal length, and a budget that no whole number of the method's
+  batches fills is refused with the nearest budgets that are (issue #25; before, 20,000 silently
+  became 16,384). The GPU settings make Table I's 120,000 exact for every method: PPO's batch is
+  4,000 episodes (4,000 environments x 160 steps), ES's 2 x 1,000;
+* PPO: brax's own evaluator is off (`run_evals=False`): the strict-metric curve below replaces it,
+  and it cost a sequential episode per point;
 * learning-curve points: PPO hands its policy to policy_params_fn at every epoch; SAC and ES
   only to their evaluator (brax.training.acting.Evaluator.run_evaluation), just before each
   progress_fn(step, metrics) call, so `_capturing_evaluations` wraps that method for the
   trainer's call to keep the parameters it was given (the trainers themselves are unchanged);
   the same wrapper hands brax's evaluator one array type, so it compiles its unroll once, not
-  three times (`_plain`).
+  three times (`_plain`). The points are only collected during training; eval/baselines.py
+  scores them all in one batched rollout at the end;
+* seeds: one cell after another in one process; brax builds its jitted functions anew per call,
+  so the later seeds reuse the first one's compiled programs through JAX's persistent
+  compilation cache (`ttmjx` enables it) instead of compiling again.
 
 The conversion (`policy_params`): brax's policy MLP hidden_i -> MLPNet dense_i, its mean head ->
 head; brax's observation normalization (x - m) / s per input value folded into the first layer
@@ -59,10 +66,17 @@ METHODS = ("ppo", "sac", "es")
 
 @dataclasses.dataclass(frozen=True)
 class PPOConfig:
-    """brax.training.agents.ppo.train arguments (Playground-like values for MJX tasks)."""
-    num_envs: int = 4096
+    """brax.training.agents.ppo.train arguments (Playground-like values for MJX tasks).
+
+    One training step is batch_size * num_minibatches sequences of unroll_length steps, i.e.
+    num_minibatches * batch_size / num_envs = 8 unrolls of 20 steps of every environment: exactly
+    one 160-step episode of each of the 4,000 environments, 4,000 trajectories, so every batch
+    holds every phase of the throw and any multiple of 4,000 trajectories (120,000 included) is
+    run exactly. (Before issue #25: 4,096 environments and batches of 1,024, 4,096 trajectories
+    per step; 120,000 was not a whole number of them.)"""
+    num_envs: int = 4000
     unroll_length: int = 20
-    batch_size: int = 1024
+    batch_size: int = 1000
     num_minibatches: int = 32
     num_updates_per_batch: int = 4
     learning_rate: float = 3e-4
@@ -92,8 +106,9 @@ class SACConfig:
 
 @dataclasses.dataclass(frozen=True)
 class ESConfig:
-    """brax.training.agents.es.train arguments (2 * population_size episodes per update)."""
-    population_size: int = 1024
+    """brax.training.agents.es.train arguments (2 * population_size episodes per update: 2,000, so
+    120,000 trajectories are 60 updates exactly; 1,024 before issue #25)."""
+    population_size: int = 1000
     perturbation_std: float = 0.02
     learning_rate: float = 0.01
     init_noise_std: float = 0.05
@@ -117,10 +132,10 @@ class BaselineConfig:
     budget's training steps exactly, so the number run is schedule(cfg).num_evals: the divisor
     of the steps nearest num_evals - 1 (at most 4x it), plus one."""
     num_eval_envs: int = 128
-    """brax's own evaluator (episode reward) environments."""
-    requested_trajectories: int | None = None
-    """The budget asked for, when `fit_budget` lowered run.total_trajectories to what brax runs
-    exactly (None: run.total_trajectories is the request)."""
+    """brax's own evaluator (episode reward) environments (SAC, ES; PPO runs none)."""
+    throw_pool: int = 16
+    """Throws solved ahead per environment (training/baselines/env.py FreshAutoReset): one solve
+    serves this many episodes."""
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -130,13 +145,9 @@ class BaselineConfig:
                              f"expected 'framestack'")
         if self.num_evals < 1 or self.num_eval_envs < 1:
             raise ValueError(f"num_evals={self.num_evals} and num_eval_envs={self.num_eval_envs} must be >= 1")
-        need = batch_trajectories(self)
-        if self.run.total_trajectories < need:
-            raise ValueError(f"trajectory budget {self.run.total_trajectories} is below one batch of "
-                             f"{self.method} ({need} trajectories)")
-        if self.requested_trajectories is not None and self.requested_trajectories < self.run.total_trajectories:
-            raise ValueError(f"requested_trajectories={self.requested_trajectories} is below the run's "
-                             f"total_trajectories={self.run.total_trajectories}")
+        if self.throw_pool < 1:
+            raise ValueError(f"throw_pool={self.throw_pool} must be >= 1")
+        schedule(self)   # the budget: run exactly, or ValueError naming the nearest budgets
 
     @property
     def steps(self) -> int:
@@ -209,38 +220,49 @@ def _epochs(units: int, target: int) -> int:
     return min(divisors, key=lambda d: (abs(math.log(d / target)), -d))
 
 
-def schedule(cfg: BaselineConfig, trajectories: int | None = None) -> Schedule:
-    """brax's (num_timesteps, num_evals) for a budget (default: cfg.run.total_trajectories):
-    the largest whole number of trajectories not above it that brax runs exactly, in the number
-    of equal epochs nearest cfg.num_evals - 1 that divides it. ValueError below one batch."""
-    n = cfg.run.total_trajectories if trajectories is None else trajectories
+def exact_budgets(cfg: BaselineConfig, trajectories: int) -> tuple[int | None, int]:
+    """(largest, smallest): the budgets brax runs exactly that are <= and >= `trajectories`
+    (None: none below). A budget is exact when prefill + k * unit environment steps, k a whole
+    number of the method's batches (>= 1), are that many whole trajectories."""
     h = cfg.run.world.horizon
     prefill, unit = _units(cfg)
     first, period = _valid_units(cfg)
-    most = (n * h - prefill) // unit
-    if most < first:
-        raise ValueError(f"trajectory budget {n} is below one batch of {cfg.method} "
-                         f"({(prefill + first * unit) // h} trajectories)")
-    units = first + (most - first) // period * period
+    step = period * unit // h                     # trajectories between two exact budgets
+    lowest = (prefill + first * unit) // h
+    if trajectories < lowest:
+        return None, lowest
+    below = lowest + (trajectories - lowest) // step * step
+    return below, below if below == trajectories else below + step
+
+
+def schedule(cfg: BaselineConfig, trajectories: int | None = None) -> Schedule:
+    """brax's (num_timesteps, num_evals) for a budget (default: cfg.run.total_trajectories) that
+    brax runs exactly, in the number of equal epochs nearest cfg.num_evals - 1 that divides it.
+    ValueError naming the nearest exact budgets for any other budget (below one batch too)."""
+    n = cfg.run.total_trajectories if trajectories is None else trajectories
+    h = cfg.run.world.horizon
+    prefill, unit = _units(cfg)
+    below, above = exact_budgets(cfg, n)
+    what = {"ppo": f"training steps of {unit // h:,} trajectories",
+            "sac": f"a replay prefill of {prefill:,} steps, then actor steps of {unit:,} environment steps",
+            "es": f"updates of {unit // h:,} episodes"}[cfg.method]
+    if below is None:
+        raise ValueError(f"trajectory budget {n:,} is below one batch of {cfg.method} ({what}); "
+                         f"the smallest budget is {above:,}")
+    if below != n:
+        raise ValueError(f"trajectory budget {n:,} cannot be run exactly by {cfg.method} ({what}); "
+                         f"the nearest budgets are {below:,} and {above:,}")
+    units = (n * h - prefill) // unit
     epochs = _epochs(units, max(cfg.num_evals - 1, 1))
     steps = prefill + units * unit
-    assert brax_env_steps(cfg, steps, epochs + 1) == steps
-    return Schedule(num_timesteps=steps, num_evals=epochs + 1, trajectories=steps // h, units=units)
+    assert steps == n * h and brax_env_steps(cfg, steps, epochs + 1) == steps
+    return Schedule(num_timesteps=steps, num_evals=epochs + 1, trajectories=n, units=units)
 
 
 def batch_trajectories(cfg: BaselineConfig) -> int:
     """Trajectories of one batch (one update) of the method: the smallest budget that trains."""
     prefill, unit = _units(cfg)
     return (prefill + _valid_units(cfg)[0] * unit) // cfg.run.world.horizon
-
-
-def fit_budget(cfg: BaselineConfig) -> BaselineConfig:
-    """cfg with run.total_trajectories = the trajectories brax runs (schedule) and the budget
-    asked for in requested_trajectories, so the cell's JSON, the checkpoint's config and counter
-    and the curve all hold what was consumed."""
-    s = schedule(cfg)
-    return dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, total_trajectories=s.trajectories),
-                               requested_trajectories=cfg.requested_trajectories or cfg.run.total_trajectories)
 
 
 # -- brax networks -----------------------------------------------------------------------------
@@ -362,25 +384,31 @@ def _capturing_evaluations():
         acting.Evaluator.run_evaluation = original
 
 
-def train(cfg: BaselineConfig, on_policy=None, progress=None):
+def train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | None = None):
     """Run brax's trainer on schedule(cfg); returns the final policy as PolicyParams.
 
     on_policy(env_steps, PolicyParams) is called at every learning-curve point (brax's step 0
     and the end of each of its epochs; env_steps is brax's own count, the last one exactly
     schedule(cfg).num_timesteps); progress(env_steps, metrics) gets brax's own metrics (its
-    evaluator's episode reward)."""
+    evaluator's episode reward, or PPO's training metrics). `timing`, a dict, receives where the
+    time went: `points` [(env_steps, seconds since the call)] and `epochs`, brax's own
+    training/sps and training/walltime per epoch (its epoch time excludes evaluations; the
+    first epoch includes compiling the training step)."""
     with brax_compat():
-        return _train(cfg, on_policy, progress)
+        return _train(cfg, on_policy, progress, {} if timing is None else timing)
 
 
-def _train(cfg: BaselineConfig, on_policy=None, progress=None):
+def _train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | None = None):
+    t0 = time.perf_counter()
     env = GoalEnv(cfg.run.world, cfg.reward)
     h = cfg.run.world.horizon
     sched = schedule(cfg)
     steps_seen = []
+    timing.update(points=[], epochs=[])
 
     def point(step, normalizer, policy):
         steps_seen.append(int(step))
+        timing["points"].append((int(step), round(time.perf_counter() - t0, 3)))
         if on_policy is not None:
             on_policy(int(step), policy_params(cfg, normalizer, policy))
 
@@ -391,10 +419,14 @@ def _train(cfg: BaselineConfig, on_policy=None, progress=None):
             scored = evaluated.pop() if evaluated else None
             if scored is not None and cfg.method != "ppo":   # SAC, ES: the policy their evaluator just scored
                 point(step, *scored[:2])
+            if "training/sps" in metrics:
+                timing["epochs"].append({"env_steps": int(step), "sps": float(metrics["training/sps"]),
+                                         "walltime": float(metrics["training/walltime"])})
             if progress is not None:
                 progress(step, metrics)
 
-        common = dict(environment=env, num_timesteps=sched.num_timesteps, episode_length=h, wrap_env_fn=wrap_fresh,
+        wrap = functools.partial(wrap_fresh, pool=cfg.throw_pool)
+        common = dict(environment=env, num_timesteps=sched.num_timesteps, episode_length=h, wrap_env_fn=wrap,
                       normalize_observations=True, seed=cfg.run.seed, num_evals=sched.num_evals,
                       num_eval_envs=cfg.num_eval_envs, deterministic_eval=True, progress_fn=progress_fn)
         if cfg.method == "ppo":
@@ -405,7 +437,7 @@ def _train(cfg: BaselineConfig, on_policy=None, progress=None):
                                      num_updates_per_batch=p.num_updates_per_batch, learning_rate=p.learning_rate,
                                      entropy_cost=p.entropy_cost, discounting=p.discounting,
                                      clipping_epsilon=p.clipping_epsilon, network_factory=ppo_networks(cfg),
-                                     policy_params_fn=lambda step, _, params: point(step, params[0], params[1]))
+                                     run_evals=False, policy_params_fn=lambda step, _, params: point(step, params[0], params[1]))
         elif cfg.method == "sac":
             from brax.training.agents.sac import train as sac
             s = cfg.sac
@@ -424,6 +456,7 @@ def _train(cfg: BaselineConfig, on_policy=None, progress=None):
         # (end_at_landing: ES counts the steps of episodes that ended early as none)
         raise RuntimeError(f"brax's {cfg.method} ran {ran} environment steps; schedule() expected "
                            f"{sched.num_timesteps} (has brax's arithmetic changed? see brax_env_steps)")
+    timing["train_s"] = round(time.perf_counter() - t0, 3)
     return final
 
 

@@ -28,6 +28,14 @@ world's command clipping, events and observation (ttmjx.world.env), the world's 
 
 Brax's AutoResetWrapper restarts a finished episode from the SAME first state (throw and goal)
 forever; `wrap_fresh` is brax's training wrapper with a fresh reset (new throw, new goal) instead.
+
+Throws are solved ahead, `pool` per environment at a time (issue #25): solving a throw is a
+Newton solve over simulated flights, thousands of sequential tiny steps whose latency on a GPU
+does not depend on how many throws are solved together, and it used to run at every episode
+end (inside the training step, once per `horizon` steps) and twice per ES epoch or evaluation
+(the reset, and brax's automatic restart after the last step). With a pool, one solve of
+n x pool throws serves `pool` episodes of n environments; every episode still starts from a
+throw of its own, never reused (tests/test_baselines.py).
 """
 from __future__ import annotations
 
@@ -85,8 +93,13 @@ class GoalEnv(Env):
         self.lay = self.physics.lay
 
     def reset(self, rng) -> State:
-        k_throw, k_goal, k_state = jax.random.split(rng, 3)
-        th = jax.tree.map(lambda x: x[0], thrower.sample_throws(k_throw, self.cfg, 1))
+        k_throw = jax.random.split(rng, 3)[0]
+        return self.reset_with(rng, jax.tree.map(lambda x: x[0], thrower.sample_throws(k_throw, self.cfg, 1)))
+
+    def reset_with(self, rng, th: thrower.Throw) -> State:
+        """reset(rng) with the throw given (solved elsewhere, e.g. FreshAutoReset's pool): the goal
+        and the home-pose noise are drawn from rng as reset draws them."""
+        _, k_goal, k_state = jax.random.split(rng, 3)
         goal = uniform_goals(k_goal, 1, self.cfg.table)[0]
         s = task.reset(self.cfg, self.lay, k_state, th.launch_pos, th.launch_vel, th.launch_spin, th.aim, goal)
         zero = jnp.zeros((), jnp.float32)
@@ -121,14 +134,45 @@ class GoalEnv(Env):
         return "mjx"
 
 
+def _episode_info(state: State, n: int) -> State:
+    """state with the info brax 0.14.2's EpisodeWrapper.reset adds (tests/test_baselines.py
+    compares the structure with brax's own)."""
+    zero = jnp.zeros((n,))
+    state.info.update(steps=zero, truncation=zero, episode_done=zero,
+                      episode_metrics={"sum_reward": zero, "length": zero, **{k: zero for k in state.metrics}})
+    return state
+
+
 class FreshAutoReset(Wrapper):
     """brax's AutoResetWrapper, but a finished episode restarts from a NEW reset (throw, goal,
     home-pose noise) drawn from a key carried per environment, not from its first state again.
-    The reset is computed only when some environment finished (lax.cond)."""
+    The restart is computed only when some environment finished (lax.cond).
+
+    Throws come from a pool of `pool` per environment (info['throw_pool'] [n, pool, ...],
+    info['throw_next'] [n]: the next unused one), solved in one batch at reset and again when an
+    environment that finished has used all of its own (lax.cond): each episode's throw is used
+    once. Wraps EpisodeWrapper(VmapWrapper(GoalEnv)) (wrap_fresh); reset builds that state
+    directly (GoalEnv.reset_with + EpisodeWrapper's info)."""
+
+    def __init__(self, env: Env, pool: int = 1):
+        super().__init__(env)
+        if int(pool) < 1:
+            raise ValueError(f"throw pool {pool!r}; expected an integer >= 1")
+        self.pool = int(pool)
+        self.goal_env = env.unwrapped
+
+    def _solve(self, key, n: int):
+        """n x pool fresh throws, leaves [n, pool, ...]."""
+        th = thrower.sample_throws(key, self.goal_env.cfg, n * self.pool)
+        return jax.tree.map(lambda x: x.reshape((n, self.pool) + x.shape[1:]), th)
 
     def reset(self, rng) -> State:
-        state = self.env.reset(rng)
-        state.info["reset_key"] = jax.vmap(lambda k: jax.random.fold_in(k, 1))(rng)
+        n = rng.shape[0]
+        pool = self._solve(jax.random.fold_in(rng[0], 2), n)
+        state = jax.vmap(self.goal_env.reset_with)(rng, jax.tree.map(lambda x: x[:, 0], pool))
+        state = _episode_info(state, n)
+        state.info.update(reset_key=jax.vmap(lambda k: jax.random.fold_in(k, 1))(rng), throw_pool=pool,
+                          throw_next=jnp.ones((n,), jnp.int32))
         return state
 
     def step(self, state: State, action) -> State:
@@ -137,21 +181,28 @@ class FreshAutoReset(Wrapper):
         state = self.env.step(state.replace(done=jnp.zeros_like(state.done)), action)
         keys = jax.vmap(jax.random.split)(state.info["reset_key"])
         state.info["reset_key"] = keys[:, 0]
+        n, pool, nxt = state.done.shape[0], state.info["throw_pool"], state.info["throw_next"]
 
         def restart(_):
-            fresh = self.env.reset(keys[:, 1])
-            pick = lambda a, b: jnp.where(state.done.reshape((-1,) + (1,) * (a.ndim - 1)) > 0, a, b)  # noqa: E731
+            done = state.done > 0
+            refill = lambda _: (self._solve(jax.random.fold_in(keys[0, 1], 3), n), jnp.zeros_like(nxt))  # noqa: E731
+            p, i = jax.lax.cond(jnp.any(done & (nxt >= self.pool)), refill, lambda _: (pool, nxt), None)
+            th = jax.tree.map(lambda x: x[jnp.arange(n), jnp.minimum(i, self.pool - 1)], p)
+            fresh = jax.vmap(self.goal_env.reset_with)(keys[:, 1], th)
+            pick = lambda a, b: jnp.where(done.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
             return (jax.tree.map(pick, fresh.pipeline_state, state.pipeline_state),
-                    jax.tree.map(pick, fresh.obs, state.obs))
+                    jax.tree.map(pick, fresh.obs, state.obs), p, jnp.where(done, i + 1, i))
 
-        ps, obs = jax.lax.cond(jnp.any(state.done > 0), restart,
-                               lambda _: (state.pipeline_state, state.obs), None)
+        ps, obs, pool, nxt = jax.lax.cond(jnp.any(state.done > 0), restart,
+                                          lambda _: (state.pipeline_state, state.obs, pool, nxt), None)
+        state.info.update(throw_pool=pool, throw_next=nxt)
         return state.replace(pipeline_state=ps, obs=obs)
 
 
-def wrap_fresh(env: Env, episode_length: int = 1000, action_repeat: int = 1, randomization_fn=None) -> Env:
+def wrap_fresh(env: Env, episode_length: int = 1000, action_repeat: int = 1, randomization_fn=None,
+               pool: int = 1) -> Env:
     """brax.envs.training.wrap with FreshAutoReset in place of AutoResetWrapper (the trainers'
-    `wrap_env_fn`)."""
+    `wrap_env_fn`; `pool`: throws solved ahead per environment, functools.partial it in)."""
     if randomization_fn is not None:
         raise ValueError("wrap_fresh: domain randomization is not supported")
-    return FreshAutoReset(EpisodeWrapper(VmapWrapper(env), episode_length, action_repeat))
+    return FreshAutoReset(EpisodeWrapper(VmapWrapper(env), episode_length, action_repeat), pool)

@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# On the lent GPU machine (device tool), from the repository root: issue #25's baseline cells.
+#   bash scripts/gpu_baselines.sh PROFILE_S "METHOD:SEEDS:LIMIT_S" ...
+# e.g. bash scripts/gpu_baselines.sh 90 ppo:5:300 es:1:140
+# Profiles the environment pieces (scripts/baseline_profile.py, at most PROFILE_S seconds; 0
+# skips it), then runs `ttmjx baseline METHOD --scale full --seeds SEEDS --out B/table1` for
+# each, each under its own limit (SIGTERM: finished cells are kept, a cut one is redone).
+# Writes $OUT/log.txt (everything printed), $OUT/profile.json and $OUT/baselines.tgz (results,
+# timing.json per cell, table, curves; no checkpoints), refreshed every 20 s in the background.
+set -uo pipefail
+python3 -m pip install -q --no-deps --no-index .wheels/*.whl 2>&1 | grep -v -i warn | tail -2
+export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false TTMJX_JAX_CACHE=$PWD/.jax_cache
+OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"; B=/tmp/bl; mkdir -p "$B"
+pack() { tar czf "$OUT/baselines.tgz.part" --exclude=checkpoints --exclude=tensorboard -C "$B" . 2>/dev/null \
+         && mv "$OUT/baselines.tgz.part" "$OUT/baselines.tgz"; }
+( while sleep 20; do pack; done ) & PACKER=$!
+nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee -a "$OUT/log.txt"
+PROFILE_S=$1; shift
+if [[ $PROFILE_S -gt 0 ]]; then
+  echo "=== profile $(date +%T)" | tee -a "$OUT/log.txt"
+  timeout "$PROFILE_S" python3 scripts/baseline_profile.py 2>>"$OUT/log.txt" | tee "$OUT/profile.json"
+fi
+for spec in "$@"; do
+  IFS=: read -r m s lim <<<"$spec"
+  echo "=== baseline $m seeds $s limit $lim $(date +%T)" | tee -a "$OUT/log.txt"
+  /usr/bin/time -f "wall %e s, peak rss %M kB" timeout -s TERM "$lim" \
+    python3 -m ttmjx.cli baseline "$m" --scale full --seeds "$s" --out "$B/table1" 2>&1 \
+    | tr '\r' '\n' | grep -v "^\s*$" | tee -a "$OUT/log.txt" | grep -E "^\[|wall|error" | tail -20
+done
+kill $PACKER 2>/dev/null; pack
+python3 - "$B" <<'PY' | tee -a "$OUT/log.txt"
+import glob, json, os, sys
+for f in sorted(glob.glob(os.path.join(sys.argv[1], "table1/runs/*/timing.json"))):
+    t = json.load(open(f)); e = t.get("epochs", [])
+    print(os.path.basename(os.path.dirname(f)), "train", t.get("train_s"), "curve", t.get("curve_eval_s"),
+          "final", t.get("final_eval_s"), "sps", [round(x["sps"]) for x in e][:12])
+PY
+echo "=== done $(date +%T)" | tee -a "$OUT/log.txt"
