@@ -55,7 +55,7 @@ def test_invalid_variants_are_named():
         ablate.apply(ablate.SCALES["tiny"].base("sim"), {"nope.x": 1})
     # RunConfig refuses an unknown demonstrator itself (ablate.check_choices covers Literal fields
     # whose dataclass does not check them).
-    with pytest.raises(ValueError, match=r"demo_source='human', expected 'paper', 'es' or 'oracle'"):
+    with pytest.raises(ValueError, match=r"demo_source='human', expected 'paper', 'striker', 'es' or 'oracle'"):
         ablate.apply(ablate.SCALES["tiny"].base("sim"), {"demo_source": "human", "backend": "c"})
     bad = ablate.apply(ablate.SCALES["tiny"].base("sim"), {"backend": "c"})
     object.__setattr__(bad, "backend", "tpu")

@@ -1,6 +1,7 @@
 """Bootstrap sources (ttmjx/tools/demos.py) on the MuJoCo C backend: each gives valid
-demonstrations; `paper` never sees the goal and its landings spread as its perturbation implies;
-the perturbation touches exactly its 4 joints; `oracle` is the striker of before."""
+demonstrations; `striker` (called `paper` before issue 22) never sees the goal and its landings
+spread as its perturbation implies; the perturbation touches exactly its 4 joints; `oracle` is
+the striker of before. The `paper` procedure: tests/test_paper_bootstrap.py."""
 import math
 import os
 
@@ -34,9 +35,9 @@ def backend():
 
 
 @pytest.fixture(scope="module")
-def paper(backend):
-    """The `paper` source on N throws, once with zero goals and once with uniform goals."""
-    policy, params = demos.source_policy(CFG, "paper")
+def striker(backend):
+    """The `striker` source on N throws, once with zero goals and once with uniform goals."""
+    policy, params = demos.source_policy(CFG, "striker")
     throws = thrower.sample_throws(jax.random.PRNGKey(1), CFG, N)
     goals = np.asarray(uniform_goals(jax.random.PRNGKey(2), N, CFG.table))
     run = lambda g: jax.tree.map(np.asarray, backend.rollout(policy, params, jax.random.PRNGKey(3), throws, g))  # noqa: E731
@@ -83,28 +84,37 @@ def test_configurations_saved_with_scripted_load_as_oracle():
         RunConfig(demo_source="human")
 
 
-def test_paper_and_es_give_valid_demonstrations(paper, tmp_path):
+def test_datasets_that_said_paper_before_issue_22_are_striker_datasets():
+    """`paper` stays a valid name (the paper's procedure now); a dataset written before, without
+    `source_version`, is read as the striker's."""
+    assert demos.source_name("paper") == "paper" and demos.source_name("striker") == "striker"
+    assert demos.dataset_source({"source": "paper"}) == "striker"
+    assert demos.dataset_source({"source": "paper", "source_version": demos.SOURCE_VERSION}) == "paper"
+    assert demos.dataset_source({"source": "scripted"}) == "oracle"
+
+
+def test_striker_and_es_give_valid_demonstrations(striker, tmp_path):
     """Both round-trip through the dataset format; the narrow striker and the shipped ES policy
-    hit >= 90% of narrow throws (the ES policy returns none: it learned to block)."""
-    assert roundtrip(paper[0], tmp_path / "paper", "paper").hit.mean() >= 0.9
+    hit >= 90% of narrow throws."""
+    assert roundtrip(striker[0], tmp_path / "striker", "striker").hit.mean() >= 0.9
     assert roundtrip(demos.collect(CFG, "es", 8, seed=4), tmp_path / "es", "es").hit.mean() >= 0.9
 
 
-def test_paper_landings_do_not_depend_on_the_goal(paper):
-    """The paper source never reads the goal: the same throws and keys with other goals in the
+def test_striker_landings_do_not_depend_on_the_goal(striker):
+    """The striker source never reads the goal: the same throws and keys with other goals in the
     observation give the same commands and landings, bit for bit."""
-    zero, uniform = paper
+    zero, uniform = striker
     np.testing.assert_array_equal(zero.actions, uniform.actions)
     np.testing.assert_array_equal(zero.landing, uniform.landing)
 
 
-def test_paper_landings_spread_as_the_perturbation_implies(paper):
+def test_striker_landings_spread_as_the_perturbation_implies(striker):
     """A face turned by an angle d sends the return off by about L d at the landing, L ~ 2.1 m the
     flight from the hitting plane (x ~ -1.5 m) to the aim (x = 0.685 m). The base yaw j1 turns it
     across the table (uniform +-a1: std L a1 / sqrt 3), the shoulder j2 in pitch, along it. We
     require half of these: a floor that the unperturbed narrow striker (std 0.06 m along, 0.01 m
     across the table) does not reach, and most balls still on the opponent's half."""
-    traj, _ = paper
+    traj, _ = striker
     on = traj.on_opponent
     land = traj.landing[on]
     flight = 1.5 + demos.paper_target(CFG)[0]
@@ -119,7 +129,7 @@ def test_the_perturbation_touches_exactly_its_4_joints(backend):
     """Offsets drawn over 2000 episodes are non-zero on the 4 chosen joints only, uniform within
     their half-widths; at a real first step, a perturbed policy's command differs from the same
     policy's unperturbed one on those joints only, by the episode's offset (the ES policy: the
-    wrapper is the same for every source); and the paper source's striker draws no offsets of
+    wrapper is the same for every source); and the striker source's striker draws no offsets of
     its own."""
     from ttmjx.tools import es
     assert len(PERT.joints) == 4 and demos.narrow_striker(CFG).perturb_joints == 0

@@ -109,3 +109,48 @@ def test_train_es_runs_end_to_end(tmp_path):
     assert {"hit_rate", "return_rate", "val_hit_rate", "best_generation"} <= set(hist[-1])
     saved = es.load_params(ckpt)
     assert all(np.array_equal(saved[k], np.asarray(params[k])) for k in es.PARAM_NAMES)
+
+
+def _hit_record(landing, on_opponent, last_x):
+    """Two-step records of hit balls (hit at step 0) that came down at `landing` (NaN: still
+    flying at the end, last seen at x = last_x)."""
+    from ttmjx.world.record import Trajectories
+    b = len(landing)
+    obs = np.zeros((b, 2, 13), np.float32)
+    obs[:, :, :8] = CFG.robot.home
+    obs[:, 0, 8:11] = (-1.5, 0.0, 0.9)
+    obs[:, 1, 8:11] = np.stack([np.asarray(last_x, np.float32), np.zeros(b), np.full(b, 1.0)], 1)
+    z = lambda *s, d=np.float32: np.zeros((b, *s), d)  # noqa: E731
+    return Trajectories(obs=obs, ball_vel=z(2, 3), actions=z(2, 8), valid=np.ones((b, 2), bool), goal=z(2),
+                        hit=np.ones(b, bool), hit_step=np.zeros(b, np.int32), landing=np.asarray(landing, np.float32),
+                        on_opponent=np.asarray(on_opponent, bool), bounce_own=z(d=bool), net=z(d=bool),
+                        launch_pos=z(3), launch_vel=z(3), launch_spin=z(3), aim=z(2))
+
+
+def test_the_return_reward_climbs_from_a_block_to_a_return():
+    """The return phase's landing term rises steadily as the ball comes down closer to the aim
+    (a block falling back on the robot's half < a ball short of the net < a return), so a
+    search near a block sees a slope toward returns; a ball still flying when the episode ends
+    counts where it was last seen. The contact reward has no such term."""
+    aim_x = es.RETURN.aim[0]
+    landing = [(-1.2, 0.0), (-0.3, 0.0), (0.4, 0.0), (aim_x, 0.0), (np.nan, np.nan)]
+    traj = _hit_record(landing, [False, False, True, True, False], last_x=[0, 0, 0, 0, -0.3])
+    r = es.shaped_reward(traj, es.Paddle(CFG), es.RETURN)
+    assert np.all(np.diff(r["land"][:4]) > 0) and r["land"][3] == pytest.approx(1.0)
+    assert r["land"][4] == pytest.approx(r["land"][1])
+    assert np.all(np.diff(r["reward"][:4]) > 0)
+    np.testing.assert_allclose(r["land"][:2], 1 - (aim_x - np.array([-1.2, -0.3])) / es.LAND_SCALE, rtol=1e-6)
+    c = es.shaped_reward(traj, es.Paddle(CFG), es.CONTACT)
+    assert c["reward"][0] == pytest.approx(c["reward"][1])       # contact: a block is as good as a near miss
+
+
+def test_the_shipped_es_policy_returns_balls():
+    """The shipped weights are the return phase's: on 48 fresh narrow throws they hit most balls
+    and return most of them to the opponent's half (the contact phase alone returned none)."""
+    from ttmjx.tools import demos
+    from ttmjx.world import thrower
+    traj = demos.collect(CFG, "es", 48, seed=7)
+    throws = thrower.sample_throws(jax.random.PRNGKey(8), CFG, 48)
+    unperturbed = es.evaluate(CFG, *es.load_policy(CFG), throws, reward=es.RETURN)
+    assert unperturbed["hit_rate"] >= 0.9 and unperturbed["return_rate"] >= 0.6, unperturbed
+    assert np.mean(traj.hit) >= 0.8 and np.mean(traj.on_opponent) >= 0.4, (np.mean(traj.hit), np.mean(traj.on_opponent))

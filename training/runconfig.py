@@ -23,10 +23,12 @@ class RunConfig:
     train: TrainConfig = TrainConfig()
     demos: int = 1000
     """Bootstrap demonstrations (0 = GCSL)."""
-    demo_source: Literal["paper", "es", "oracle"] = "paper"
-    """Bootstrap demonstrator (ttmjx demos --source; ttmjx/tools/demos.py): paper (the paper's: a
-    narrow striker aimed at one point, 4 joints perturbed per episode), es (the ES policy, the same
-    perturbation) or oracle (the goal-directed striker: an upper bound, not the paper's setting)."""
+    demo_source: Literal["paper", "striker", "es", "oracle"] = "paper"
+    """Bootstrap demonstrator (ttmjx demos --source; ttmjx/tools/demos.py): paper (the paper's
+    procedure: ES, then imitation and practice shifting and expanding its landings; 4 joints
+    perturbed), striker (a narrow scripted striker aimed at one point, 4 joints perturbed; named
+    `paper` before issue 22), es (the ES policy, the same perturbation) or oracle (the
+    goal-directed striker: an upper bound, not the paper's setting)."""
     demo_dir: str | None = None
     """Use this dataset (ttmjx demos --out) instead of collecting demonstrations."""
     data: tuple[str, ...] = ()
@@ -66,8 +68,8 @@ class RunConfig:
         for name in ("demos", "pretrain_steps", "total_trajectories"):
             if getattr(self, name) < 0:
                 raise ValueError(f"RunConfig.{name}={getattr(self, name)}, expected >= 0")
-        if self.demo_source not in ("paper", "es", "oracle"):
-            raise ValueError(f"RunConfig.demo_source={self.demo_source!r}, expected 'paper', 'es' or 'oracle'")
+        if self.demo_source not in ("paper", "striker", "es", "oracle"):
+            raise ValueError(f"RunConfig.demo_source={self.demo_source!r}, expected 'paper', 'striker', 'es' or 'oracle'")
         if self.devices is not None and self.devices < 1:
             raise ValueError(f"RunConfig.devices={self.devices}, expected >= 1 or None (all)")
         if self.demos == 0 and not self.practice:

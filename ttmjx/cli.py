@@ -169,21 +169,42 @@ class SimArgs(WorldArgs):
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class DemosArgs(WorldArgs):
     """Collect bootstrap demonstrations into a new dataset directory with its landing-coverage
-    figure DIR/coverage.png (docs/DATA.md)."""
+    figure DIR/coverage.png (docs/DATA.md); for `paper`, the narrow ES policy's landings beside
+    the dataset's (the paper's figure)."""
     BOUNDS: ClassVar[dict] = {"n": (1, batch_limit)}
     NEW_DIRS: ClassVar[tuple] = ("out",)
-    source: Literal["paper", "es", "oracle", "scripted"] = "paper"
-    """Demonstrator: paper (the paper's bootstrap: a narrow striker aimed at one point, 4 joints
-    perturbed per episode), es (the ES policy, same perturbation), oracle (the goal-directed
-    striker: an UPPER BOUND, not the paper's setting; 'scripted' is its old name)."""
+    source: Literal["paper", "striker", "es", "oracle", "scripted"] = "paper"
+    """Demonstrator: paper (the paper's bootstrap procedure: ES until it returns balls, its
+    rollouts with 4 joints perturbed, imitation and practice with goals shifted up the table, then
+    over the whole half; a gather with the shipped weights), striker (a narrow scripted striker
+    aimed at one point, 4 joints perturbed: `paper` before issue 22), es (the ES policy, same
+    perturbation), oracle (the goal-directed striker: an UPPER BOUND, not the paper's setting;
+    'scripted' is its old name)."""
     n: int = 1000
-    """Number of episodes."""
+    """Number of episodes (the paper's bootstrap: 3600)."""
     seed: int = 0
-    """Seed of the throws (and the demonstrator's noise)."""
+    """Seed of the throws (and the demonstrator's noise; with --rebuild, of the procedure)."""
     out: str
     """New dataset directory (never overwritten)."""
     backend: Backend = "c"
     """Physics backend: MuJoCo C (mujoco.rollout) or MJX."""
+    rebuild: Literal["none", "stages", "all"] = "none"
+    """With --source paper: none (gather with the shipped weights, seconds), stages (the shift and
+    expand stages again from the shipped ES weights, ~10 min on 2 CPU cores), all (the whole
+    procedure from scratch, ES included, ~45 min); everything it builds goes to OUT/bootstrap/."""
+    es_generations: tuple[int, int] = (130, 300)
+    """With --rebuild all: ES generations of the contact and the return phase (48 candidates x 8
+    throws each)."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.rebuild != "none" and self.source != "paper":
+            raise ValueError(f"--rebuild {self.rebuild} builds the paper procedure; --source is {self.source!r}")
+        if self.rebuild != "none" and self.backend != "c":
+            raise ValueError("--rebuild runs ES and the stages on the MuJoCo C backend (--backend c)")
+        if self.rebuild != "none":
+            from training.bootstrap_paper import Procedure
+            Procedure(final=self.n, seed=self.seed, es_generations=self.es_generations).check(self.rebuild == "all")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -486,8 +507,17 @@ def sim(a: SimArgs) -> None:
 
 def demos(a: DemosArgs) -> None:
     from ttmjx.tools import demos as demonstrations
+    params_dir = es_dir = None
+    if a.rebuild != "none":
+        from training import bootstrap_paper
+        built = os.path.join(a.out, "bootstrap")
+        bootstrap_paper.build(built, bootstrap_paper.default_world().with_throws(a.distribution, spin=a.spin),
+                              bootstrap_paper.Procedure(final=a.n, seed=a.seed, es_generations=a.es_generations),
+                              rebuild_es=a.rebuild == "all",
+                              progress=not a.json, log=(lambda m: print(m, file=sys.stderr)))
+        params_dir, es_dir = built, (built if a.rebuild == "all" else None)
     out = demonstrations.make_dataset(a.world(), a.source, a.n, a.seed, a.out, a.backend,
-                                      progress=not a.json)
+                                      progress=not a.json, params_dir=params_dir, es_dir=es_dir)
     report(a, out, f"{table(out)}\nwrote {a.out} (and {os.path.join(a.out, 'coverage.png')})")
 
 

@@ -2,18 +2,27 @@
 
 Sources (`SOURCES`, `ttmjx demos --source`, `RunConfig.demo_source`):
 
-- `paper` (the default): the paper's bootstrap ("Building up the initial bootstrap dataset"): a
-  NARROW, non-goal-directed returner (the scripted striker, ttmjx/tools/striker.py, aimed at one
-  fixed point, `PAPER_TARGET`) whose commands on 4 of the 8 joints carry a random offset held
-  through the episode (`Perturbation`), so that the landings cover the opponent's half thinly.
-- `es`: the evolution-strategies policy (ttmjx/tools/es.py, shipped weights) with the same
-  perturbation; as the paper's ES policy, narrow (it learned to block: it returns no ball).
+- `paper`: the paper's bootstrap procedure ("Building up the initial bootstrap dataset";
+  training/bootstrap_paper.py builds it, ttmjx/tools/bootstrap.py plays its result): an ES policy
+  trained in simulation until it returns balls (narrow), its rollouts with 4 of the 8 joints
+  perturbed, relabelled goal-conditioned imitation and self-practice with goals up the table
+  (shift), then over the whole half (expand); the demonstrations are the last policy's episodes,
+  goals uniform over the half and 4 joints perturbed (`Perturbation`). The shipped weights
+  (ttmjx/tools/assets/paper_policy.*) make it a gather only; `ttmjx demos --source paper
+  --rebuild stages|all` builds the procedure again.
+- `striker`: the scripted striker (ttmjx/tools/striker.py) aimed at ONE fixed point,
+  `paper_target`, with the same perturbation: a nearly deterministic model-based returner.
+  Called `paper` before issue 22 (datasets whose metadata says `paper` without
+  `source_version` 2 are striker datasets: `dataset_source`).
+- `es`: the ES policy alone (ttmjx/tools/es.py, shipped weights) with the same perturbation:
+  the paper procedure's narrow first stage.
 - `oracle`: the goal-directed striker aiming every return at a random target of the half. Its
   landings are its own targets (98% within 30 cm), so imitating it is nearly goal reaching: an
   UPPER BOUND, not the paper's bootstrap. Named `scripted` before (still accepted, `LEGACY`).
 
-The goal in the observations is a placeholder (zeros): no source sees a goal; the trainer
-relabels each demonstration with where its ball landed.
+The goal in the observations is a placeholder (zeros): no source reads it (the `paper` policy
+draws its own goal per episode); the trainer relabels each demonstration with where its ball
+landed.
 """
 from __future__ import annotations
 
@@ -29,10 +38,26 @@ import numpy as np
 from ttmjx.world import backends, record, thrower
 from ttmjx.world.config import JOINT_NAMES, World, opponent_half
 
-SOURCES = ("paper", "es", "oracle")
-LEGACY = {"scripted": "oracle"}   # old names of sources (datasets, config.json, scripts)
+SOURCES = ("paper", "striker", "es", "oracle")
+# Old names of sources (datasets, config.json, scripts). `paper` meant the striker source until
+# issue 22 and is now the paper's procedure: the name stays valid, so it is not mapped here; a
+# DATASET from before says so by lacking `source_version` (`dataset_source`), and a run's
+# config.json from before keeps its collected demonstrations in its run directory (a resumed
+# run does not collect again).
+LEGACY = {"scripted": "oracle"}
+SOURCE_VERSION = 2   # in the metadata of datasets written since `paper` is the paper's procedure
+NARROW_FIGURE_N = 1000   # ES episodes drawn as the narrow map beside a `paper` dataset
 COVERAGE_GRID = (6, 4)  # cells along the table's length (x) and width (y) of the opponent's half
 COVER_RADIUS = 0.3      # m: the paper's looser success radius; "area within 30 cm of a landing"
+
+
+def dataset_source(meta: dict) -> str:
+    """The current name of the source a dataset's metadata records: `paper` written before
+    issue 22 (no `source_version`) is today's `striker`."""
+    source = meta.get("source", "?")
+    if source == "paper" and meta.get("source_version", 1) < SOURCE_VERSION:
+        return "striker"
+    return LEGACY.get(source, source)
 
 
 def source_name(source: str) -> str:
@@ -98,14 +123,14 @@ def perturbed(policy: backends.Policy, pert: Perturbation) -> backends.Policy:
 
 
 def paper_target(cfg: World) -> tuple[float, float]:
-    """The `paper` source's one aim point: the centre of the opponent's half, so that a
+    """The `striker` source's one aim point: the centre of the opponent's half, so that a
     symmetric perturbation spreads the landings over the whole half (the paper's ES policy
     aimed near the net on one side; its data were then shifted to cover the table)."""
     return cfg.table.half_length / 2, 0.0
 
 
 def narrow_striker(cfg: World):
-    """The striker for the `paper` source: `striker.imitable()` aimed at `paper_target` on every
+    """The striker for the `striker` source: `striker.imitable()` aimed at `paper_target` on every
     throw, with its own per-episode joint offsets and posture draws off (the `Perturbation`
     wrapper is the only one)."""
     from ttmjx.tools import striker
@@ -115,14 +140,20 @@ def narrow_striker(cfg: World):
 
 def source_policy(cfg: World, source: str, params_dir: str | None = None,
                   pert: Perturbation = Perturbation()):
-    """(Policy, params) of a demonstration source (`SOURCES`; old names accepted)."""
+    """(Policy, params) of a demonstration source (`SOURCES`; old names accepted). params_dir:
+    other weights than the shipped ones (`paper`: a directory of tools/bootstrap.py weights;
+    `es`: es.load_policy's)."""
     source = source_name(source)
     if source == "oracle":
         from ttmjx.tools import striker
         return striker.striker_policy(cfg, striker.imitable()), None
-    if source == "paper":
+    if source == "striker":
         from ttmjx.tools import striker
         return perturbed(striker.striker_policy(cfg, narrow_striker(cfg)), pert), None
+    if source == "paper":
+        from ttmjx.tools import bootstrap
+        policy, params = bootstrap.load_policy(cfg, params_dir)
+        return perturbed(policy, pert), params
     from ttmjx.tools import es
     policy, params = es.load_policy(cfg, params_dir)
     return perturbed(policy, pert), params
@@ -207,43 +238,51 @@ def code_version() -> str:
 
 
 def make_dataset(cfg: World, source: str, n: int, seed: int, out: str, backend: str = "c",
-                 progress: bool = True) -> dict:
+                 progress: bool = True, params_dir: str | None = None, es_dir: str | None = None) -> dict:
     """Collect and write a dataset to `out` (refuses to overwrite) with its landing-coverage
-    figure `out/coverage.png`; returns the JSON summary."""
+    figure `out/coverage.png`; returns the JSON summary. For `paper` the figure is the narrow ES
+    policy's landings (n episodes, at most `NARROW_FIGURE_N`, 4 joints perturbed, ES weights from `es_dir`)
+    beside the dataset's, as the paper's figure, and the summary adds the narrow map's numbers
+    (`narrow_*`). params_dir: `source_policy`'s."""
     import os
     from ttmjx.world.config import to_dict
     if os.path.exists(os.path.join(out, "trajectories.npz")):
         raise FileExistsError(f"{out} already holds a dataset; refusing to overwrite it")
     source = source_name(source)
     t0 = time.perf_counter()
-    traj = collect(cfg, source, n, seed, backend, progress=progress)
+    traj = collect(cfg, source, n, seed, backend, progress=progress, params_dir=params_dir)
     seconds = time.perf_counter() - t0
     summ = summary(traj, cfg)
-    meta = {"source": source, "distribution": cfg.throws.name, "seed": seed,
+    narrow = None
+    if source == "paper":
+        t1 = time.perf_counter()
+        narrow = collect(cfg, "es", min(n, NARROW_FIGURE_N), seed + 1, backend, progress=progress, params_dir=es_dir)
+        summ.update({f"narrow_{k}": v for k, v in summary(narrow, cfg).items()})
+        summ["narrow_seconds"] = time.perf_counter() - t1
+    meta = {"source": source, "source_version": SOURCE_VERSION, "distribution": cfg.throws.name, "seed": seed,
             "backend": backend, "code_version": code_version(), "seconds": seconds,
             "counts": {"hit": int(np.sum(traj.hit)), "returned": int(np.sum(traj.on_opponent))},
             **{k: v for k, v in summ.items() if k != "n"}, "world": to_dict(cfg)}
     record.save(out, traj, meta)
-    plot_coverage(traj, meta, os.path.join(out, "coverage.png"))
+    path = os.path.join(out, "coverage.png")
+    if narrow is not None:
+        plot_bootstrap(narrow, traj, cfg, path)
+    else:
+        plot_coverage(traj, meta, path)
     return {**summ, "seconds": seconds}
 
 
-SOURCE_LABELS = {"paper": "paper: narrow striker, 4 joints perturbed",
+SOURCE_LABELS = {"paper": "paper: the paper's bootstrap procedure (ES, shift, expand), 4 joints perturbed",
+                 "striker": "striker: narrow scripted striker, 4 joints perturbed",
                  "es": "es: ES policy, 4 joints perturbed",
                  "oracle": "oracle: goal-directed striker (upper bound)"}
 
 
-def plot_coverage(traj: record.Trajectories, meta: dict, path: str) -> str:
-    """Draw a record's landings over the table, the opponent's half outlined, with the summary
-    table (`summary`) beside them (like the paper's Figure 3); writes the PNG at `path`."""
-    import io
-    import matplotlib
-    matplotlib.use("Agg")
+def _draw_landings(ax, traj: record.Trajectories, cfg: World, title: str):
+    """The table seen from the robot's side (the opponent's half at the top, y to the left),
+    the opponent's half outlined, a record's landings over it."""
     import matplotlib.pyplot as plt
-    from ttmjx.world import files
-    cfg = _world_of(meta)
     t = cfg.table
-    fig, ax = plt.subplots(figsize=(7.5, 6))
     ax.add_patch(plt.Rectangle((-t.half_width, -t.half_length), t.width, t.length, color="#1f4e8c"))
     ax.plot([-t.half_width, t.half_width], [0, 0], color="white", lw=3)              # net
     ax.plot([0, 0], [-t.half_length, t.half_length], color="white", lw=0.8)          # centre line
@@ -253,28 +292,63 @@ def plot_coverage(traj: record.Trajectories, meta: dict, path: str) -> str:
     land = np.asarray(traj.landing)
     ok = np.isfinite(land[:, 0])
     on = np.asarray(traj.on_opponent, bool)
-    # Drawn from the robot's side: the opponent's half (x > 0) at the top, y to the left.
     ax.scatter(-land[ok & on, 1], land[ok & on, 0], s=5, c="orange", label="landed on the opponent's half")
     ax.scatter(-land[ok & ~on, 1], land[ok & ~on, 0], s=5, c="red", alpha=0.5, label="elsewhere")
     ax.set_xlim(-1.3, 1.3), ax.set_ylim(-1.6, 2.2), ax.set_aspect("equal")
-    source = meta.get("source", "?")
-    ax.set_title(f"{SOURCE_LABELS.get(LEGACY.get(source, source), source)}\n"
-                 f"{meta.get('distribution')} throws, n={traj.size}", fontsize=10)
+    ax.set_title(title, fontsize=10)
     ax.legend(loc="upper left", fontsize=7)
     ax.set_xlabel("-y (m)"), ax.set_ylabel("x (m)")
-    s = summary(traj, cfg)
-    rows = [("hit", f"{s['hit_rate']:.1%}"), ("on opponent's half", f"{s['return_rate']:.1%}"),
+
+
+def _summary_rows(s: dict) -> list[tuple[str, str]]:
+    return [("hit", f"{s['hit_rate']:.1%}"), ("on opponent's half", f"{s['return_rate']:.1%}"),
             ("half's area within 30 cm", f"{s['area_within_30cm']:.1%}"),
             ("6 x 4 cells reached", f"{s['coverage']:.0%}"),
             ("landing std x / y", f"{s['landing_std_x']:.2f} / {s['landing_std_y']:.2f} m")]
-    tab = ax.table(cellText=[[v] for _, v in rows], rowLabels=[k for k, _ in rows], colWidths=[0.32],
-                   bbox=[1.55, 0.55, 0.45, 0.4])
-    tab.set_fontsize(8)
+
+
+def _save(fig, path: str) -> str:
+    import io
+    import matplotlib.pyplot as plt
+    from ttmjx.world import files
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
     plt.close(fig)
     files.write_bytes(path, buf.getvalue())
     return path
+
+
+def plot_coverage(traj: record.Trajectories, meta: dict, path: str) -> str:
+    """Draw a record's landings over the table, the opponent's half outlined, with the summary
+    table (`summary`) beside them (like the paper's Figure 3); writes the PNG at `path`."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    cfg = _world_of(meta)
+    fig, ax = plt.subplots(figsize=(7.5, 6))
+    source = dataset_source(meta)
+    _draw_landings(ax, traj, cfg, f"{SOURCE_LABELS.get(source, source)}\n{meta.get('distribution')} throws, "
+                                  f"n={traj.size}")
+    rows = _summary_rows(summary(traj, cfg))
+    tab = ax.table(cellText=[[v] for _, v in rows], rowLabels=[k for k, _ in rows], colWidths=[0.32],
+                   bbox=[1.55, 0.55, 0.45, 0.4])
+    tab.set_fontsize(8)
+    return _save(fig, path)
+
+
+def plot_bootstrap(narrow: record.Trajectories, final: record.Trajectories, cfg: World, path: str) -> str:
+    """The paper's figure of its bootstrap: the narrow ES policy's landings beside the final
+    demonstrations', each with its summary under it; writes the PNG at `path`."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(11, 7.5))
+    for ax, traj, title in ((axes[0], narrow, "the initial narrow policy (ES, 4 joints perturbed)"),
+                            (axes[1], final, "the bootstrap dataset (after shift and expand)")):
+        _draw_landings(ax, traj, cfg, f"{title}\n{cfg.throws.name} throws, n={traj.size}")
+        text = "\n".join(f"{k}: {v}" for k, v in _summary_rows(summary(traj, cfg)))
+        ax.text(0.5, -0.12, text, transform=ax.transAxes, ha="center", va="top", fontsize=8, family="monospace")
+    return _save(fig, path)
 
 
 def plot_landings(directory: str, path: str | None = None) -> str:
