@@ -149,4 +149,6 @@ def timing_line(summary: dict) -> str:
 
 def with_added(timing: Timing, **added_s) -> Timing:
     """`timing` with seconds added to named fields (tracker_latency_s=0.025, ...)."""
-    return dataclasses.replace(timing, **{k: getattr(timing, k) + v for k, v in added_s.items()})
+    # An ideal timing resets every field it is given (Timing.ideal_timing): the added delays
+    # must leave it, or the sweep would play the ideal station at every point.
+    return dataclasses.replace(timing, ideal_timing=False, **{k: getattr(timing, k) + v for k, v in added_s.items()})
