@@ -194,3 +194,22 @@ def test_no_module_imports_a_private_name_of_another_package():
             if isinstance(node, ast.ImportFrom) and node.module and package(node.module) != mine:
                 private = [a.name for a in node.names if a.name.startswith("_")]
                 assert not private, f"{path}:{node.lineno} imports {private} from {node.module}"
+
+
+def test_importing_mjx_and_brax_is_quiet_unless_asked():
+    """MJX's optional Warp backend prints "Failed to import warp" when Warp is absent; ttmjx
+    imports MJX (and brax, which imports it) without that noise; TTMJX_VERBOSE=1 lets it through."""
+    code = ("from ttmjx.world.backends import MjxPhysics; from ttmjx.world.config import World; "
+            "MjxPhysics(World()); import training.baselines.env; print('done')")
+    quiet = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                           env={k: v for k, v in os.environ.items() if k != "TTMJX_VERBOSE"})
+    assert quiet.returncode == 0, quiet.stderr[-2000:]
+    assert quiet.stdout == "done\n" and "Failed to import" not in quiet.stderr, (quiet.stdout, quiet.stderr)
+    try:
+        import warp  # noqa: F401
+        return                      # Warp installed: nothing to print either way
+    except ImportError:
+        pass
+    verbose = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                             env=dict(os.environ, TTMJX_VERBOSE="1"))
+    assert verbose.returncode == 0 and "Failed to import warp" in verbose.stdout, verbose.stdout

@@ -42,15 +42,18 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from brax.envs.base import Env, State, Wrapper
-from brax.envs.wrappers.training import EpisodeWrapper, VmapWrapper
 
-from ttmjx.world import env as task
-from ttmjx.world import thrower
-from ttmjx.world.backends import MjxPhysics
-from ttmjx.world.config import World
-from ttmjx.world.goals import uniform_goals
-from training.baselines.config import RewardConfig
+from ttmjx.world.backends import MjxPhysics, import_mjx
+
+import_mjx()   # brax imports mujoco.mjx: first without the optional Warp backend's noise
+from brax.envs.base import Env, State, Wrapper  # noqa: E402
+from brax.envs.wrappers.training import EpisodeWrapper, VmapWrapper  # noqa: E402
+
+from ttmjx.world import env as task  # noqa: E402
+from ttmjx.world import thrower  # noqa: E402
+from ttmjx.world.config import World  # noqa: E402
+from ttmjx.world.goals import uniform_goals  # noqa: E402
+from training.baselines.config import RewardConfig  # noqa: E402
 
 
 TERMS = ("r_goal", "r_hit", "r_opponent", "r_pose", "r_smooth")

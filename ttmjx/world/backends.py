@@ -38,6 +38,23 @@ def resolve_backend(name: str) -> str:
 Policy = env.Policy
 
 
+def import_mjx():
+    """mujoco.mjx, without the "Failed to import warp" lines its optional Warp backend prints
+    when Warp is not installed (TTMJX_VERBOSE=1 shows them). Import brax after this too."""
+    import sys
+    if "mujoco.mjx" not in sys.modules and os.environ.get("TTMJX_VERBOSE", "") in ("", "0"):
+        import contextlib
+        import io
+        said = io.StringIO()
+        with contextlib.redirect_stdout(said):
+            import mujoco.mjx  # noqa: F401
+        rest = [ln for ln in said.getvalue().splitlines(keepends=True)
+                if not ln.startswith(("Failed to import warp", "Failed to import mujoco_warp"))]
+        sys.stdout.write("".join(rest))
+    from mujoco import mjx
+    return mjx
+
+
 def _ramp(ctrl0, ctrl1, n: int):
     """[..., n, 8] targets interpolated linearly over the n physics steps of a control step."""
     w = (jnp.arange(1, n + 1, dtype=jnp.float32) / n)[:, None]
@@ -54,7 +71,7 @@ class MjxPhysics:
     """MJX physics for one throw; jit/vmap the methods."""
 
     def __init__(self, cfg: World):
-        from mujoco import mjx
+        mjx = import_mjx()
         self.cfg = cfg
         self.m = scene.model(cfg, fluid=False)  # zero density: MJX's box drag would be wrong
         self.mx = mjx.put_model(self.m)
@@ -69,7 +86,7 @@ class MjxPhysics:
     def step_ctrl(self, qpos, qvel, ctrl):
         """One control step. qpos [nq], qvel [nv], ctrl [S, 8] targets per physics step ->
         (qpos, qvel, ball [S, 6] world pos+vel after each physics step, paddle [S, 3], joints [S, 8])."""
-        from mujoco import mjx
+        mjx = import_mjx()
         cfg, lay = self.cfg, self.lay
         bq, bv = lay.ball_qpos, lay.ball_qvel
         rq = jnp.array(lay.robot_qpos)
