@@ -71,11 +71,11 @@ def tiny_rl() -> dict:
 
 
 def method_config(method: str, scale: str, seed: int, run_dir: str, trajectories: int | None = None,
-                  reward: RewardConfig = RewardConfig()):
+                  reward: RewardConfig = RewardConfig(), rl: dict | None = None):
     """The cell's configuration: a BaselineConfig (RL) or a RunConfig; ValueError naming the
     method and the problem. An RL cell runs exactly its budget: one that no whole number of the
     method's batches fills (or below one batch) is refused, naming the nearest budgets that are
-    (agents.schedule)."""
+    (agents.schedule). `rl`: brax settings replacing the scale's ({'ppo': PPOConfig(...)})."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {METHODS}")
     base = goalseye_base(scale)
@@ -85,7 +85,7 @@ def method_config(method: str, scale: str, seed: int, run_dir: str, trajectories
     try:
         if method in RL:
             run = agents.run_config(method, base)
-            settings = tiny_rl() if scale == "tiny" else {"num_evals": 8}
+            settings = {**(tiny_rl() if scale == "tiny" else {"num_evals": 8}), **(rl or {})}
             return agents.BaselineConfig(method, run, reward=reward, **settings)
         overrides = {"gcsl": {"demos": 0, "pretrain_steps": 0, "preset": "gcsl"},
                      "lfp": {"practice": False, "demos": ablate.ALL_TRAJECTORIES,
@@ -106,12 +106,12 @@ def parse_methods(spec: str) -> list[str]:
 
 
 def plan(methods: list[str], scale: str, seeds: int, out: str, trajectories: int | None = None,
-         reward: RewardConfig = RewardConfig()) -> list[cellrun.Cell]:
+         reward: RewardConfig = RewardConfig(), rl: dict | None = None) -> list[cellrun.Cell]:
     """The cells (seed-major), every configuration built and every finished result checked
     before anything is written."""
     entries = [(m, seed) for seed in range(seeds) for m in methods]
     return cellrun.planned_cells(out, entries,
-                                 lambda m, seed, run_dir: method_config(m, scale, seed, run_dir, trajectories, reward))
+                                 lambda m, seed, run_dir: method_config(m, scale, seed, run_dir, trajectories, reward, rl))
 
 
 # -- the RL trainer (the cells seam) ------------------------------------------------------------
@@ -128,7 +128,19 @@ def rl_trainer(cfg: agents.BaselineConfig, progress: bool = True) -> cellrun.Out
     run = cfg.run
     h = run.world.horizon
     points, timing = [], {}
-    params = agents.train(cfg, lambda steps, p: points.append((steps, p)), timing=timing)
+    timing_path = os.path.join(run.run_dir, "timing.json")
+    t0 = time.perf_counter()
+
+    def on_policy(steps: int, p):
+        """Keep the point; say at once how far brax got and when (a cell cut short by a call's
+        time limit still leaves its timing.json so far)."""
+        points.append((steps, p))
+        files.write_json(timing_path, timing)
+        if progress:
+            log(f"[baseline] {cfg.method} {steps // h:,} trajectories trained ({steps:,} environment steps) "
+                f"at {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+
+    params = agents.train(cfg, on_policy, timing=timing)
     t = time.perf_counter()
     backend = Backend(run.world, resolve_backend(run.backend))
     metrics = curve_metrics(cfg, [p for _, p in points], backend)
@@ -147,7 +159,7 @@ def rl_trainer(cfg: agents.BaselineConfig, progress: bool = True) -> cellrun.Out
     final, landings = cellrun.final_evaluation(run.run_dir)
     timing["final_eval_s"] = round(time.perf_counter() - t, 3)
     timing["env_steps"] = agents.schedule(cfg).num_timesteps
-    files.write_json(os.path.join(run.run_dir, "timing.json"), timing)
+    files.write_json(timing_path, timing)
     return cellrun.Outcome(True, 0, final, curve, landings)
 
 
@@ -169,9 +181,9 @@ def trainer(cfg, progress: bool = True) -> cellrun.Outcome:
 
 
 def run(methods: list[str], scale: str, seeds: int, out: str, trajectories: int | None = None,
-        reward: RewardConfig = RewardConfig(), progress: bool = True, command: str = "") -> dict:
+        reward: RewardConfig = RewardConfig(), progress: bool = True, command: str = "", rl: dict | None = None) -> dict:
     """Train the cells that are not finished, then rebuild the table from every finished result."""
-    cells = plan(methods, scale, seeds, out, trajectories, reward)
+    cells = plan(methods, scale, seeds, out, trajectories, reward, rl)
     stopped = cellrun.run_cells(cells, os.path.join(out, "results"), trainer, progress, f"baseline {scale}",
                                 log=lambda m: log(m, file=sys.stderr))
     return {**build_report(scale, out, command), "cells_run": [c.name for c in cells], "stopped_by_signal": stopped}

@@ -2,12 +2,15 @@
 the environment reset as it was (every environment solving its own throw, vmapped, once per
 episode) against the throw pool that replaced it (one batch of n x pool throws for `pool`
 episodes), and one training-step's worth of environment steps through the wrapper brax trains
-on. Prints one JSON line; run on the GPU by scripts/gpu_baselines.sh.
+on. Prints each piece as soon as it is measured (a call's time limit may cut the rest), then
+one JSON line; run on the GPU by scripts/gpu_baselines.sh. Each piece: (first call, compile
+included; median of later calls) in seconds.
 
     python3 scripts/baseline_profile.py [--envs 4000] [--pool 16]
 """
 import argparse
 import json
+import sys
 import time
 
 import jax
@@ -41,12 +44,17 @@ def main():
     env = GoalEnv(world)
     keys = jax.random.split(jax.random.PRNGKey(0), a.envs)
     out = {"device": str(jax.devices()[0]), "envs": a.envs, "pool": a.pool}
+
+    def record(name, value):
+        out[name] = value
+        print(f"{name}: {value}", file=sys.stderr, flush=True)
+
     # before: every environment solves its own throw (vmapped), at every episode end
-    out["reset_vmapped_s"] = timed(jax.jit(jax.vmap(env.reset)), keys)
+    record("reset_vmapped_s", timed(jax.jit(jax.vmap(env.reset)), keys))
     # after: n x pool throws in one batch, once per `pool` episodes
     solve = jax.jit(lambda k: thrower.sample_throws(k, world, a.envs * a.pool))
-    out["solve_pool_s"] = timed(solve, keys[0])
-    out["solve_n_s"] = timed(jax.jit(lambda k: thrower.sample_throws(k, world, a.envs)), keys[0])
+    record("solve_pool_s", timed(solve, keys[0]))
+    record("solve_n_s", timed(jax.jit(lambda k: thrower.sample_throws(k, world, a.envs)), keys[0]))
     # the environment alone through brax's training wrapper (ours), zero actions, `steps` steps
     wrapped = wrap_fresh(env, episode_length=world.horizon, pool=a.pool)
     s0 = jax.jit(wrapped.reset)(keys)
@@ -56,8 +64,8 @@ def main():
         return jax.lax.scan(lambda s, _: (wrapped.step(s, jnp.zeros((a.envs, 8))), None), s, None,
                             length=a.steps)[0].reward.sum()
     first, run = timed(unroll, s0, reps=2)
-    out["env_unroll_s"] = (first, run)
-    out["env_steps_per_s"] = round(a.envs * a.steps / run)
+    record("env_unroll_s", (first, run))
+    record("env_steps_per_s", round(a.envs * a.steps / run))
     print(json.dumps(out), flush=True)
 
 

@@ -6,13 +6,19 @@
 # skips it), then runs `ttmjx baseline METHOD --scale full --seeds SEEDS --out B/table1` for
 # each, each under its own limit (SIGTERM: finished cells are kept, a cut one is redone).
 # Writes $OUT/log.txt (everything printed), $OUT/profile.json and $OUT/baselines.tgz (results,
-# timing.json per cell, table, curves; no checkpoints), refreshed every 20 s in the background.
+# timing.json per cell, table, curves; no checkpoints), refreshed every 20 s in the background,
+# and $OUT/jax_cache.tgz, JAX's persistent compilation cache of this call when it packs under
+# 15 MB: unpack it here into .gpu_jax_cache/ (list it in .git/info/exclude) and carry that
+# folder in the next call, which then loads the compiled training step instead of compiling it.
 set -uo pipefail
 python3 -m pip install -q --no-deps --no-index .wheels/*.whl 2>&1 | grep -v -i warn | tail -2
-export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false TTMJX_JAX_CACHE=$PWD/.jax_cache
+mkdir -p .gpu_jax_cache
+export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false TTMJX_JAX_CACHE=$PWD/.gpu_jax_cache
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"; B=/tmp/bl; mkdir -p "$B"
 pack() { tar czf "$OUT/baselines.tgz.part" --exclude=checkpoints --exclude=tensorboard -C "$B" . 2>/dev/null \
-         && mv "$OUT/baselines.tgz.part" "$OUT/baselines.tgz"; }
+         && mv "$OUT/baselines.tgz.part" "$OUT/baselines.tgz"
+         tar czf /tmp/jax_cache.tgz -C .gpu_jax_cache . 2>/dev/null \
+         && [[ $(stat -c %s /tmp/jax_cache.tgz) -lt 15000000 ]] && mv /tmp/jax_cache.tgz "$OUT/jax_cache.tgz"; }
 ( while sleep 20; do pack; done ) & PACKER=$!
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee -a "$OUT/log.txt"
 PROFILE_S=$1; shift

@@ -191,6 +191,17 @@ def test_cli_refuses_an_inexact_budget_with_one_line(tmp_path, capsys):
     assert err[0].startswith("ttmjx baseline: error: ") and "123,457" in err[0]
     assert "120,000 and 124,000" in err[0], err[0]
     assert not out.exists()
+    # brax's settings are flags, checked as well: 12,000 environments make 12,000-trajectory steps
+    with pytest.raises(SystemExit) as e:
+        main(["baseline", "ppo", "--ppo.num-envs", "12000", "--trajectories", "120000", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and "multiple of num_envs (12000)" in err[0], err
+    with pytest.raises(SystemExit) as e:
+        main(["baseline", "ppo", "--ppo.num-envs", "12000", "--ppo.num-minibatches", "96", "--trajectories", "126000",
+              "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and "training steps of 12,000" in err[0] and "120,000 and 132,000" in err[0], err
+    assert not out.exists()
 
 
 def test_throws_are_solved_ahead_and_never_reused(monkeypatch):

@@ -22,7 +22,7 @@ import tyro
 
 from deploy.cli import STATIONS
 from eval.ablate import ABLATION_NAMES, SCALE_NAMES
-from training.baselines.config import RewardConfig
+from training.baselines.config import ESConfig, PPOConfig, RewardConfig, SACConfig
 from training.runconfig import PRESET_NAMES, RunConfig, preset
 from ttmjx.world.config import CONTROL_RATES, THROW_DISTRIBUTIONS, World
 from ttmjx.world.files import json_safe
@@ -308,6 +308,12 @@ class BaselineArgs(Report):
     """Table directory; None: baselines/SCALE."""
     reward: RewardConfig = RewardConfig()
     """The RL reward's weights (training/baselines/config.py)."""
+    ppo: PPOConfig = PPOConfig()
+    """brax PPO's settings at --scale full (training/baselines/config.py); e.g. --ppo.num-envs."""
+    sac: SACConfig = SACConfig()
+    """brax SAC's settings at --scale full."""
+    es: ESConfig = ESConfig()
+    """brax ES's settings at --scale full."""
     report: Flag = False
     """Only (re)build the table, curves, landing maps and summary from the finished cells."""
 
@@ -632,8 +638,9 @@ def baseline(a: BaselineArgs) -> None:
     if a.report:
         summary = baselines.build_report(a.scale, out, command)
     else:
+        rl = {name: c for name, c in (("ppo", a.ppo), ("sac", a.sac), ("es", a.es)) if c != type(c)()}
         summary = baselines.run(methods, a.scale, a.seeds, out, a.trajectories, a.reward, progress=not a.json,
-                                command=command)
+                                command=command, rl=rl)
     with open(summary["outputs"]["table"]) as f:
         report(a, summary, f.read() + f"\nwrote {out}/ (table.md, curves.png, landings/, summary.json)")
     if summary.get("stopped_by_signal"):

@@ -57,62 +57,11 @@ from flax import linen
 from models.normalizer import Normalizer
 from models.policy import PolicyParams
 from training import checkpoint
-from training.baselines.config import RewardConfig
+from training.baselines.config import ESConfig, PPOConfig, RewardConfig, SACConfig  # noqa: F401 (re-exported)
 from training.baselines.env import GoalEnv, reach, wrap_fresh
 from training.runconfig import RunConfig, to_json
 
 METHODS = ("ppo", "sac", "es")
-
-
-@dataclasses.dataclass(frozen=True)
-class PPOConfig:
-    """brax.training.agents.ppo.train arguments (Playground-like values for MJX tasks).
-
-    One training step is batch_size * num_minibatches sequences of unroll_length steps, i.e.
-    num_minibatches * batch_size / num_envs = 8 unrolls of 20 steps of every environment: exactly
-    one 160-step episode of each of the 4,000 environments, 4,000 trajectories, so every batch
-    holds every phase of the throw and any multiple of 4,000 trajectories (120,000 included) is
-    run exactly. (Before issue #25: 4,096 environments and batches of 1,024, 4,096 trajectories
-    per step; 120,000 was not a whole number of them.)"""
-    num_envs: int = 4000
-    unroll_length: int = 20
-    batch_size: int = 1000
-    num_minibatches: int = 32
-    num_updates_per_batch: int = 4
-    learning_rate: float = 3e-4
-    entropy_cost: float = 1e-2
-    discounting: float = 0.99
-    clipping_epsilon: float = 0.2
-    init_noise_std: float = 0.5
-    value_hidden: tuple = (256, 256, 256)
-
-
-@dataclasses.dataclass(frozen=True)
-class SACConfig:
-    """brax.training.agents.sac.train arguments.
-
-    No Q-network size: brax's make_sac_networks takes one hidden_layer_sizes for the policy and
-    the Q networks, so the Q networks are the policy's MLP size (the run's PolicyConfig.hidden x
-    layers). A separate size would need a network factory of our own; the field that claimed one
-    (q_hidden) was ignored and is gone."""
-    num_envs: int = 256
-    batch_size: int = 512
-    grad_updates_per_step: int = 8
-    min_replay_size: int = 65_536
-    max_replay_size: int = 2_000_000
-    learning_rate: float = 3e-4
-    discounting: float = 0.99
-
-
-@dataclasses.dataclass(frozen=True)
-class ESConfig:
-    """brax.training.agents.es.train arguments (2 * population_size episodes per update: 2,000, so
-    120,000 trajectories are 60 updates exactly; 1,024 before issue #25)."""
-    population_size: int = 1000
-    perturbation_std: float = 0.02
-    learning_rate: float = 0.01
-    init_noise_std: float = 0.05
-    """Std of the actions ES samples in its rollouts (brax ES acts stochastically); also perturbed."""
 
 
 @dataclasses.dataclass(frozen=True)
