@@ -163,11 +163,12 @@ ABLATIONS: dict[str, Ablation] = {
         "observation (13 values: positions; 16: with ball velocity) and network (frame stack or LSTM)", "sim",
         {f"{kind}-{n}": {"policy.kind": kind, "policy.obs_size": n, "world.ball_velocity_obs": n == 16}
          for kind in ("framestack", "lstm") for n in (13, 16)}),
-    # Item 1 of issue #11: the paper's narrow perturbed returner, the ES policy, and the
-    # goal-directed striker as an upper bound.
+    # Item 1 of issue #11: the bootstrap demonstrators (issue 22: `paper` is the paper's
+    # procedure, built for narrow throws only; `striker` the narrow striker called `paper` before).
     "bootstrap": Ablation(
-        "bootstrap demonstrator (paper: narrow returner, 4 joints perturbed; es; oracle: goal-directed)", "sim",
-        {src: {"demo_source": src} for src in ("paper", "es", "oracle")}),
+        "bootstrap demonstrator (paper: ES, shift, expand, 4 joints perturbed; striker: narrow scripted returner; "
+        "es; oracle: goal-directed)", "sim",
+        {src: {"demo_source": src} for src in ("paper", "striker", "es", "oracle")}),
     # LFP is GCBC on the demonstrations alone. Equal updates: same demonstrations and schedule,
     # practice rounds replaced by train-only rounds. Equal data: as many demonstrations as
     # GoalsEye sees trajectories (demonstrations + practice), and GoalsEye's updates.

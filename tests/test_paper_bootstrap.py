@@ -115,14 +115,14 @@ def test_bad_sizes_are_refused_with_their_numbers():
 
 
 def test_the_stages_run_through_the_trainer(tmp_path):
-    """The whole procedure at toy sizes (the narrow stage played by the striker, so no ES is
-    trained here): the shift and expand stages are one trainer run resumed, each with practice
-    rounds; the exported weights play as the `paper` source; the record and figure are written."""
+    """The whole procedure at toy sizes from the shipped ES weights (no ES is trained here): the
+    shift and expand stages are one trainer run resumed, each with practice rounds; the exported
+    weights play as the `paper` source; the record and figure are written; a second call finds
+    everything done."""
     proc = bp.Procedure(narrow=340, shift=50, expand=50, final=50, pretrain_steps=20, steps_per_round=10,
                         episodes_per_round=50)
     out = str(tmp_path / "b")
-    rep = bp.build(out, World().with_throws("narrow"), proc, progress=False, log=lambda m: None,
-                   narrow_source="striker")
+    rep = bp.build(out, World().with_throws("narrow"), proc, progress=False, log=lambda m: None)
     rows = [json.loads(x) for x in open(os.path.join(out, "run", "metrics.jsonl"))]
     practice = [r for r in rows if r["phase"] == "practice"]
     assert [r["trajectories"] for r in practice] == [390, 440] and rep["shift"]["rounds"] == rep["expand"]["rounds"] == 1
@@ -133,8 +133,7 @@ def test_the_stages_run_through_the_trainer(tmp_path):
     assert x0 == pytest.approx(float(np.median(np.asarray(record.load(os.path.join(out, "narrow"))[0].landing)[
         np.asarray(record.load(os.path.join(out, "narrow"))[0].on_opponent)][:, 0])))
     assert os.path.exists(os.path.join(out, "bootstrap.png")) and os.path.exists(os.path.join(out, "procedure.json"))
-    again = bp.build(out, World().with_throws("narrow"), proc, progress=False, log=lambda m: None,
-                     narrow_source="striker")                         # resumable: nothing left to do
+    again = bp.build(out, World().with_throws("narrow"), proc, progress=False, log=lambda m: None)
     assert again["final"] == rep["final"]
 
 
@@ -149,3 +148,31 @@ def test_cli_refuses_a_rebuild_too_small_for_es(tmp_path):
     r = subprocess.run([sys.executable, "-m", "ttmjx.cli", "demos", "--source", "es", "--rebuild", "stages",
                         "--out", str(out)], capture_output=True, text=True)
     assert r.returncode == 2 and "--rebuild stages builds the paper procedure" in r.stderr and not out.exists()
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    """The shipped `paper` source and the narrow ES policy it started from (unperturbed, as the
+    paper's figure draws it), 128 narrow throws each in the world the bootstrap was built in."""
+    world = bp.default_world()
+    return (world, demos.collect(world, "paper", 128, seed=5),
+            demos.collect(world, "es", 128, seed=5, pert=None))
+
+
+def test_the_shipped_bootstrap_covers_the_half_beyond_the_narrow_policy(shipped):
+    """The paper's claim for its procedure, on the shipped weights: the final demonstrations
+    still hit and return most balls, and their landings spread over the half further than the
+    narrow ES policy's, along the table and across it."""
+    world, final, narrow = shipped
+    f, n = demos.summary(final, world), demos.summary(narrow, world)
+    assert f["hit_rate"] >= 0.85 and f["return_rate"] >= 0.4, f
+    assert f["landing_std_y"] > 1.5 * n["landing_std_y"] and f["landing_std_x"] > n["landing_std_x"], (f, n)
+    assert f["area_within_30cm"] > n["area_within_30cm"] and f["coverage"] > n["coverage"], (f, n)
+    assert np.all(np.asarray(final.goal) == 0.0)                 # the zero placeholder: relabelled later
+
+
+def test_the_shipped_weights_refuse_another_throw_distribution():
+    meta = bootstrap.read_meta()
+    assert meta["world"]["throws"]["name"] == "narrow" and meta["procedure"]["final"] == 3600
+    with pytest.raises(ValueError, match="built on narrow throws, not any"):
+        bootstrap.load_policy(World().with_throws("any"))

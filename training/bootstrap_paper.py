@@ -182,10 +182,11 @@ def export_weights(run_dir: str, out_dir: str, meta: dict) -> str:
                                    "obs_size": pcfg.obs_size, **meta})
 
 
-def gather(world: World, source: str, n: int, seed: int, out: str, params_dir: str | None, progress: bool) -> dict:
+def gather(world: World, source: str, n: int, seed: int, out: str, params_dir: str | None, progress: bool,
+           pert: demos.Perturbation | None = demos.Perturbation()) -> dict:
     """Collect n episodes of a source into the dataset `out`; its summary."""
     t0 = time.perf_counter()
-    traj = demos.collect(world, source, n, seed, progress=progress, params_dir=params_dir)
+    traj = demos.collect(world, source, n, seed, progress=progress, params_dir=params_dir, pert=pert)
     seconds = time.perf_counter() - t0
     summ = demos.summary(traj, world)
     record.save(out, traj, {"source": source, "distribution": world.throws.name, "seed": seed, "backend": "c",
@@ -269,7 +270,14 @@ def build(out_dir: str, world: World | None = None, proc: Procedure = Procedure(
         gather(world, "paper", proc.final, proc.seed + 2, final_dir, out_dir, progress)
     report["final"] = demos.summary(record.load(final_dir)[0], world)
     timer["final"] = time.perf_counter() - t0
+    # The paper's figure: the narrow policy itself (unperturbed) beside the final demonstrations.
+    policy_dir = os.path.join(out_dir, "narrow_policy")
+    if not os.path.exists(os.path.join(policy_dir, "trajectories.npz")):
+        gather(world, narrow_source, min(proc.narrow, demos.NARROW_FIGURE_N), proc.seed + 3, policy_dir, es_dir,
+               progress, pert=None)
+    policy_traj = record.load(policy_dir)[0]
+    report["narrow_policy"] = demos.summary(policy_traj, world)
     report["seconds"] = timer
     files.write_json(os.path.join(out_dir, "procedure.json"), report)
-    demos.plot_bootstrap(narrow, record.load(final_dir)[0], world, os.path.join(out_dir, "bootstrap.png"))
+    demos.plot_bootstrap(policy_traj, record.load(final_dir)[0], world, os.path.join(out_dir, "bootstrap.png"))
     return report

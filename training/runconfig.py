@@ -122,7 +122,9 @@ def paper_sim() -> RunConfig:
         # A rollout on MJX is latency-bound (1,000 episodes take 4.1 s on an H100, about as long as
         # 4,000), so rounds are large: 4,000 episodes then 200 updates, the paper's ratio of
         # updates to trajectories kept from our earlier S=50, M=1000.
-        demos=3600, pretrain_steps=2000, steps_between_ssp=200, episodes_per_ssp=4000,
+        # The striker (the `paper` source before issue 22): the shipped `paper` bootstrap is built
+        # for narrow throws only (ttmjx demos --source paper --rebuild all --distribution any).
+        demos=3600, demo_source="striker", pretrain_steps=2000, steps_between_ssp=200, episodes_per_ssp=4000,
         total_trajectories=120_000, eval_every=8000, checkpoint_every=5, run_dir="runs/paper-sim")
 
 
@@ -143,7 +145,7 @@ def paper_sim_new() -> RunConfig:
         policy=PolicyConfig(kind="framestack", hidden=1024, layers=2, obs_size=16, frame_stack=8),
         train=TrainConfig(window=96, batch_size=64, learning_rate=3e-4, members=10, capacity=131_072,
                           action_noise=0.0, ema_decay=0.995),
-        demos=3600, pretrain_steps=2000, steps_between_ssp=200, episodes_per_ssp=4000,
+        demos=3600, demo_source="striker", pretrain_steps=2000, steps_between_ssp=200, episodes_per_ssp=4000,
         total_trajectories=100_000, eval_every=8000, checkpoint_every=5, run_dir="runs/paper-sim-new")
 
 
