@@ -66,7 +66,7 @@ def test_the_contract_records_the_trained_timing_and_its_ranges_hashed(exports):
     assert rec["timing"] == CELL_TRAINING and rec["ranges"] == json.loads(json.dumps(CELL_TRAINING.trained_ranges()))
     assert rec["ranges"]["tracker_hz"] == 125.0 and rec["ranges"]["joint_hz"] == 250.0
     lo, hi = rec["ranges"]["action_delay_s"]
-    assert lo == 0.0 and hi == pytest.approx(0.038)     # nominal 8 ms +- 30 ms, never below zero
+    assert lo == 0.0 and hi == pytest.approx(0.018)     # nominal 8 ms +- 10 ms, never below zero
     assert rec["randomized_per_episode"] and not rec["ideal"]
     assert doc["timing"] == json.loads(json.dumps(timing_record(CELL_TRAINING)))
     # hashed: a changed range or model no longer matches the record's sha256
@@ -86,8 +86,8 @@ def test_the_station_plays_the_trained_timing_and_refuses_what_is_outside(export
     assert not outside_trained(cell, drifting)
     tm, src = station_timing(cell, "centre")
     assert src == "centre" and tm == TIMING_PROFILES["nominal"] and not outside_trained(cell, tm)
-    assert not outside_trained(cell, dataclasses.replace(tm, action_delay_s=0.037))
-    late = dataclasses.replace(tm, action_delay_s=0.045)
+    assert not outside_trained(cell, dataclasses.replace(tm, action_delay_s=0.017))
+    late = dataclasses.replace(tm, action_delay_s=0.030)
     assert [s.split()[0] for s in outside_trained(cell, late)] == ["action_delay_s"]
     with pytest.raises(TimingError, match="outside what the policy was trained under"):
         check_station(cell, late, "late")
