@@ -176,3 +176,22 @@ def test_the_shipped_weights_refuse_another_throw_distribution():
     assert meta["world"]["throws"]["name"] == "narrow" and meta["procedure"]["final"] == 3600
     with pytest.raises(ValueError, match="built on narrow throws, not any"):
         bootstrap.load_policy(World().with_throws("any"))
+
+
+def test_cli_demos_paper_writes_the_two_maps(tmp_path):
+    """`ttmjx demos` (source `paper`, the default) gathers with the shipped weights and reports
+    the narrow ES policy's numbers beside the dataset's; the figure holds both maps."""
+    import subprocess
+    import sys
+    out = str(tmp_path / "d")
+    r = subprocess.run([sys.executable, "-m", "ttmjx.cli", "demos", "--n", "16", "--out", out, "--json"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout.strip().splitlines()[-1])
+    assert res["n"] == 16 and res["narrow_n"] == 16 and 0 <= res["narrow_return_rate"] <= 1
+    traj, meta = record.load(out)
+    assert meta["source"] == "paper" and meta["source_version"] == demos.SOURCE_VERSION and traj.size == 16
+    assert demos.dataset_source(meta) == "paper"
+    from PIL import Image
+    w, h = Image.open(os.path.join(out, "coverage.png")).size
+    assert w > 1.2 * h                                              # two maps side by side
