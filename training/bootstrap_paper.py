@@ -40,7 +40,7 @@ from training.trainer import Run
 from training.update import acting_params
 from ttmjx.tools import bootstrap, demos, es
 from ttmjx.world import files, record
-from ttmjx.world.config import CELL_TRAINING, World, to_dict
+from ttmjx.world.config import CELL_TRAINING, IDEAL, World, to_dict
 
 # Below these the procedure cannot be what it claims (checked before anything runs).
 MIN_NARROW_RETURNS = 100       # narrow demonstrations that land on the opponent's half
@@ -62,12 +62,13 @@ class Procedure:
     """GCBC steps on the narrow data before practice."""
     steps_per_round: int = 100
     episodes_per_round: int = 100
-    es_generations: tuple = (130, 300)
-    """ES generations of the contact and the return phase (a rebuild from scratch)."""
+    es_generations: tuple = (134, 330)
+    """ES generations of the contact and the return phase (a rebuild from scratch; the shipped
+    weights' runs: 134 and 330, each stopped by its time limit)."""
     es_population: int = 48
     es_throws: int = 8
-    es_time_limit_s: float = 1200.0
-    """Wall-clock cap of each ES phase."""
+    es_time_limit_s: float | None = None
+    """Wall-clock cap of each ES phase (None: none)."""
     seed: int = 0
 
     def check(self, rebuild_es: bool) -> None:
@@ -196,14 +197,16 @@ def gather(world: World, source: str, n: int, seed: int, out: str, params_dir: s
 
 
 def train_es(world: World, proc: Procedure, out_dir: str, progress: bool, log) -> dict:
-    """Stage 1 from scratch: the contact phase, then the return phase from its weights."""
+    """Stage 1 from scratch: the contact phase, then the return phase from its weights, both in
+    `world` with ideal timing (as the shipped weights: ttmjx/tools/assets/es_*.json)."""
+    world = dataclasses.replace(world, timing=IDEAL)
     summary, init = {}, None
     for i, (phase, reward) in enumerate((("contact", es.CONTACT), ("return", es.RETURN))):
         t0 = time.perf_counter()
         path = os.path.join(out_dir, f"es_{phase}.npz")
         log(f"[bootstrap] ES {phase} phase: {proc.es_generations[i]} generations x {proc.es_population} "
             f"x {proc.es_throws} throws")
-        params, hist = es.train_es(world, proc.es_generations[i], proc.es_population, proc.seed + i,
+        params, hist = es.train_es(world, proc.es_generations[i], proc.es_population, proc.seed,
                                    progress=progress, throws_per_candidate=proc.es_throws,
                                    es=es.ESConfig(sigma=0.04, lr=0.01), init=init,
                                    time_limit_s=proc.es_time_limit_s, checkpoint=path, reward=reward)

@@ -192,7 +192,7 @@ class DemosArgs(WorldArgs):
     """With --source paper: none (gather with the shipped weights, seconds), stages (the shift and
     expand stages again from the shipped ES weights, ~10 min on 2 CPU cores), all (the whole
     procedure from scratch, ES included, ~45 min); everything it builds goes to OUT/bootstrap/."""
-    es_generations: tuple[int, int] = (130, 300)
+    es_generations: tuple[int, int] = (134, 330)
     """With --rebuild all: ES generations of the contact and the return phase (48 candidates x 8
     throws each)."""
 

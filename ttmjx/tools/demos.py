@@ -90,6 +90,10 @@ class Perturbation:
       0.39 m but 65% (more balls into the net and long; more offset on j2 alone, 0.16 rad, did
       not widen the spread along x either: 0.23 m, 72% on the half). Landings along x are bounded
       by the net and the far edge, so their spread stays below the uniform goals'.
+
+    These sizes were chosen for the `striker` source, which receives the offset on its commands
+    with the true joints observed (`perturbed`); `es` and `paper` receive the same sizes as a
+    hidden calibration offset (`perturbed(..., hidden=True)`), not re-chosen.
     """
     joints: tuple = (2, 3, 6, 7)
     offset: tuple = (0.15, 0.12, 0.08, 0.08)
