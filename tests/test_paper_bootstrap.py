@@ -148,6 +148,10 @@ def test_cli_refuses_a_rebuild_too_small_for_es(tmp_path):
     r = subprocess.run([sys.executable, "-m", "ttmjx.cli", "demos", "--source", "es", "--rebuild", "stages",
                         "--out", str(out)], capture_output=True, text=True)
     assert r.returncode == 2 and "--rebuild stages builds the paper procedure" in r.stderr and not out.exists()
+    r = subprocess.run([sys.executable, "-m", "ttmjx.cli", "demos", "--rebuild", "stages", "--distribution", "any",
+                        "--out", str(out)], capture_output=True, text=True)
+    assert r.returncode == 2 and "trained on narrow throws, not any: use --rebuild all" in r.stderr
+    assert not out.exists()
 
 
 @pytest.fixture(scope="module")

@@ -202,6 +202,12 @@ class DemosArgs(WorldArgs):
             raise ValueError(f"--rebuild {self.rebuild} builds the paper procedure; --source is {self.source!r}")
         if self.rebuild != "none" and self.backend != "c":
             raise ValueError("--rebuild runs ES and the stages on the MuJoCo C backend (--backend c)")
+        if self.rebuild == "stages":
+            from ttmjx.tools import es
+            trained = es.read_meta().get("distribution")
+            if trained != self.distribution:
+                raise ValueError(f"--rebuild stages starts from the shipped ES policy, trained on {trained} throws, not "
+                                 f"{self.distribution}: use --rebuild all")
         if self.rebuild != "none":
             from training.bootstrap_paper import Procedure
             Procedure(final=self.n, seed=self.seed, es_generations=self.es_generations).check(self.rebuild == "all")

@@ -223,6 +223,12 @@ def load_params(path: str) -> dict:
     return params
 
 
+def read_meta(params_dir: str | None = None) -> dict:
+    """The JSON record beside the weights (default: the shipped ones): the run, the numbers."""
+    with open(os.path.join(params_dir or ASSETS, META_NAME)) as f:
+        return json.load(f)
+
+
 def load_policy(cfg: World, params_dir: str | None = None):
     """(Policy, params) of the ES source. params_dir: a directory holding es_policy.npz (default:
     the shipped weights in ttmjx/tools/assets/) or the path of an .npz file itself. The home pose and
