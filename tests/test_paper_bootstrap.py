@@ -199,3 +199,19 @@ def test_cli_demos_paper_writes_the_two_maps(tmp_path):
     from PIL import Image
     w, h = Image.open(os.path.join(out, "coverage.png")).size
     assert w > 1.2 * h                                              # two maps side by side
+
+
+def test_es_from_scratch_chains_the_contact_and_return_phases(tmp_path):
+    """`--rebuild all`'s ES stage at toy sizes (below what Procedure.check accepts): the return
+    phase starts from the contact phase's weights, both are written, and the result loads as
+    the `es` source's weights."""
+    from ttmjx.tools import es
+    proc = bp.Procedure(es_generations=(1, 1), es_population=4, es_throws=2, es_pool=8, es_val=4)
+    summary = bp.train_es(World().with_throws("narrow"), proc, str(tmp_path), progress=False, log=lambda m: None)
+    assert set(summary) == {"contact", "return"} and all(s["generations"] == 1 for s in summary.values())
+    contact = es.load_params(str(tmp_path / "es_contact.npz"))
+    final = es.load_params(str(tmp_path / es.WEIGHTS_NAME))
+    returned = es.load_params(str(tmp_path / "es_return.npz"))
+    assert all(np.array_equal(final[k], returned[k]) for k in es.PARAM_NAMES)
+    assert not np.array_equal(contact["W2"], np.zeros_like(contact["W2"]))   # it moved from the zero head
+    assert es.read_meta(str(tmp_path))["phases"]["return"]["generations"] == 1

@@ -69,6 +69,9 @@ class Procedure:
     es_throws: int = 8
     es_time_limit_s: float | None = None
     """Wall-clock cap of each ES phase (None: none)."""
+    es_pool: int = 2048
+    """Throws sampled once per ES phase, each generation's drawn from them; and held-out ones."""
+    es_val: int = 64
     seed: int = 0
 
     def check(self, rebuild_es: bool) -> None:
@@ -209,7 +212,8 @@ def train_es(world: World, proc: Procedure, out_dir: str, progress: bool, log) -
         params, hist = es.train_es(world, proc.es_generations[i], proc.es_population, proc.seed,
                                    progress=progress, throws_per_candidate=proc.es_throws,
                                    es=es.ESConfig(sigma=0.04, lr=0.01), init=init,
-                                   time_limit_s=proc.es_time_limit_s, checkpoint=path, reward=reward)
+                                   time_limit_s=proc.es_time_limit_s, checkpoint=path, reward=reward,
+                                   pool=proc.es_pool, val_throws=proc.es_val)
         init = jax.tree.map(np.asarray, params)
         best = [h for h in hist if "val_return_rate" in h]
         summary[phase] = {"generations": len(hist), "seconds": time.perf_counter() - t0,
