@@ -215,3 +215,22 @@ def test_es_from_scratch_chains_the_contact_and_return_phases(tmp_path):
     assert all(np.array_equal(final[k], returned[k]) for k in es.PARAM_NAMES)
     assert not np.array_equal(contact["W2"], np.zeros_like(contact["W2"]))   # it moved from the zero head
     assert es.read_meta(str(tmp_path))["phases"]["return"]["generations"] == 1
+
+
+def test_the_hidden_perturbation_is_a_calibration_offset():
+    """A policy that commands the joints it observes (hold) drifts by the offset every step when
+    it sees the true joints, and commands exactly the true joints when the offset is hidden (it
+    is shown them moved back, and the offset is added to what it sends): the executed stroke is
+    its usual one moved by the offset, once."""
+    from ttmjx.world import backends
+    hold = backends.Policy(init=lambda p, k: jnp.zeros(()),
+                           apply=lambda p, c, obs, k: (c, observation.joints(obs.frame)))
+    pert = demos.Perturbation()
+    frames = jnp.tile(jnp.concatenate([jnp.arange(8.0) / 10, jnp.array([-1.0, 0.0, 0.9, 0.0, 0.0])]), (8, 1))
+    obs = env.Obs(frame=frames[-1], ball_vel=jnp.zeros(3), frames=frames, t=jnp.int32(0))
+    for hidden, want_extra in ((True, 0.0), (False, 1.0)):
+        policy = demos.perturbed(hold, pert, hidden=hidden)
+        carry = policy.init(None, jax.random.PRNGKey(0))
+        (_, offset), action = policy.apply(None, carry, obs, None)
+        assert np.abs(offset).max() > 0
+        np.testing.assert_allclose(action, observation.joints(obs.frame) + want_extra * offset, atol=1e-6)

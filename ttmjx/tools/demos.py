@@ -122,7 +122,7 @@ def perturbed(policy: backends.Policy, pert: Perturbation, hidden: bool = False)
     joints moved back by the offset (as models.policy.with_joint_offset), so it plays its usual
     stroke and the executed one is that stroke moved by the offset. A learned policy whose
     targets follow its observed joints (the imitation policies of `paper`) integrates an offset
-    it can see into a drift: on 300 narrow throws (the cell's timing) the `paper` stage policy
+    it can see into a drift: on 300 narrow throws (the cell's timing) a first build's stage policy
     hit 37% and returned 5% with the offset visible, 96% and 55% hidden (unperturbed: 100%,
     74%). The ES policy: 100% / 81% visible, 95% / 68% hidden. The record keeps the TRUE joints
     and the executed commands."""
