@@ -3,7 +3,6 @@
 the weights file is pickle-free and checked, practice goals follow the stage's box, the stages
 run through the trainer end to end, the shipped result spreads its landings over the half far
 beyond the narrow ES policy's, and bad sizes are refused before anything is written."""
-import dataclasses
 import json
 import os
 
@@ -125,7 +124,8 @@ def test_the_stages_run_through_the_trainer(tmp_path):
     rep = bp.build(out, World().with_throws("narrow"), proc, progress=False, log=lambda m: None)
     rows = [json.loads(x) for x in open(os.path.join(out, "run", "metrics.jsonl"))]
     practice = [r for r in rows if r["phase"] == "practice"]
-    assert [r["trajectories"] for r in practice] == [390, 440] and rep["shift"]["rounds"] == rep["expand"]["rounds"] == 1
+    assert [r["trajectories"] for r in practice] == [390, 440]
+    assert rep["shift"]["rounds"] == rep["expand"]["rounds"] == 1
     assert rows[-1]["updates"] == 20 + 2 * 10
     final, meta = record.load(os.path.join(out, "final"))
     assert final.size == 50 and meta["source"] == "paper" and np.all(np.asarray(final.goal) == 0.0)

@@ -215,9 +215,9 @@ def train_es(world: World, proc: Procedure, out_dir: str, progress: bool, log) -
                                    time_limit_s=proc.es_time_limit_s, checkpoint=path, reward=reward,
                                    pool=proc.es_pool, val_throws=proc.es_val)
         init = jax.tree.map(np.asarray, params)
-        best = [h for h in hist if "val_return_rate" in h]
+        val = [{k[4:]: v for k, v in h.items() if k.startswith("val_")} for h in hist if "val_return_rate" in h]
         summary[phase] = {"generations": len(hist), "seconds": time.perf_counter() - t0,
-                          "validation": {k[4:]: v for k, v in best[-1].items() if k.startswith("val_")} if best else None}
+                          "validation": val[-1] if val else None}
     es.save_params(os.path.join(out_dir, es.WEIGHTS_NAME), init, {"phases": summary})
     return summary
 

@@ -206,8 +206,8 @@ class DemosArgs(WorldArgs):
             from ttmjx.tools import es
             trained = es.read_meta().get("distribution")
             if trained != self.distribution:
-                raise ValueError(f"--rebuild stages starts from the shipped ES policy, trained on {trained} throws, not "
-                                 f"{self.distribution}: use --rebuild all")
+                raise ValueError(f"--rebuild stages starts from the shipped ES policy, trained on {trained} throws, "
+                                 f"not {self.distribution}: use --rebuild all")
         if self.rebuild != "none":
             from training.bootstrap_paper import Procedure
             Procedure(final=self.n, seed=self.seed, es_generations=self.es_generations).check(self.rebuild == "all")
