@@ -1,4 +1,6 @@
-"""Shared test set-up: JAX's persistent compilation cache and CPU-friendly defaults."""
+"""Shared test set-up: JAX's persistent compilation cache (this process and every subprocess a
+test starts), CPU-friendly defaults, and the session's shared fixtures: tiny's oracle
+demonstrations and the recorded tiny run, each made once for every module that uses them."""
 import gc
 import os
 
@@ -8,9 +10,15 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 
 _cache = os.environ.get("TTMJX_JAX_CACHE", os.path.join(os.path.dirname(__file__), "..", ".jax_cache"))
-jax.config.update("jax_compilation_cache_dir", os.path.abspath(_cache))
+_cache = os.path.abspath(_cache)
+jax.config.update("jax_compilation_cache_dir", _cache)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+# Subprocesses (`ttmjx ...`, scripts) read and fill the same cache: `ttmjx` through
+# TTMJX_JAX_CACHE (ttmjx/cli.py enable_compile_cache), plain Python through JAX's variables.
+os.environ["TTMJX_JAX_CACHE"] = _cache
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", _cache)
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -24,3 +32,30 @@ def _compiled_code_released_after_each_module():
     yield
     jax.clear_caches()
     gc.collect()
+
+
+@pytest.fixture(scope="session")
+def oracle_demos(tmp_path_factory):
+    """tiny's 200 oracle (goal-directed striker) narrow demonstrations, seed 5: those of
+    tests/data/before_renovation.json, collected once for every module (read-only)."""
+    from training import runconfig
+    from ttmjx.tools import demos
+    from ttmjx.world import record
+    d = str(tmp_path_factory.mktemp("oracle_demos"))
+    traj = demos.collect(runconfig.tiny().world, "oracle", 200, seed=5)
+    record.save(d, traj, {"source": "oracle", "distribution": "narrow", "seed": 5})
+    return d
+
+
+@pytest.fixture(scope="session")
+def recorded_tiny_run(oracle_demos, tmp_path_factory):
+    """One uninterrupted tiny run as the recordings were made (tests/recorded.py tiny_recorded),
+    every checkpoint kept: tests/test_trainer.py's reference for resumes and
+    tests/test_sharding.py's 1-device run, trained once (read-only: copy it to resume it)."""
+    from eval.evaluate import training_evaluation
+    from recorded import tiny_recorded
+    from training.trainer import Run
+    d = tmp_path_factory.mktemp("recorded_tiny_run")
+    cfg = tiny_recorded(oracle_demos, d)
+    out = Run(cfg, evaluate=training_evaluation(cfg), progress=False).run()
+    return d, out

@@ -1,29 +1,80 @@
-"""Numbers recorded from runs, and which recording a run on this machine should reproduce.
+"""Numbers recorded from runs, the configuration they were recorded with, and how a run on this
+machine is compared with them.
 
 XLA:CPU compiles float arithmetic differently on different x86-64 processors (vector widths,
 fused multiply-adds), so a run's float32 numbers agree with a recording to the last bits only on
 a processor that rounds alike; through contact physics (a landing moves with the hit's timing)
-even the first evaluation's mean distance differs by percents between processors. A test of
-"the same numbers as recorded" therefore holds one recording per kind of processor met so far
-and asks the run to reproduce one of them to float rounding. A run that reproduces none but
-whose first chunk of updates agrees with them to 1e-3 ran on a processor not yet recorded:
-the test is skipped, saying so and printing what to record. Anything further off fails.
+even the first evaluation's mean distance differs by percents between processors. So:
+
+* on the processor a recording was made on (its `cpu` below: model and vector extensions), the
+  run must reproduce that recording to float rounding (SAME_REL), every number;
+* on any processor, a run that reproduces a recording to float rounding passes (it rounds alike);
+* on any other processor the run is compared with the recordings within what was measured
+  across processors (ACROSS_CPUS): the schedule and the fields exactly, the pretraining losses
+  (fixed demonstrations, no physics in the loop) within CROSS_CPU_LOSS_REL. What goes through
+  contact physics (evaluations, practice rounds) is compared only on a recording's processor.
+Determinism itself (two runs on one machine are equal bit for bit) is tested by the resumes in
+tests/test_trainer.py, on whatever machine runs them.
 """
+import dataclasses
 import json
 import os
 
 import pytest
 
 DATA = os.path.join(os.path.dirname(__file__), "data")
-# name -> rows of tiny's metrics.jsonl (tests/test_trainer.py RECORDED_PRACTICE), newest last
+# name -> rows of tiny's metrics.jsonl (tiny_recorded below), newest last
 RECORDINGS = {
     "before_renovation.json (the developers' CPU, before the One-way house renovation)":
         json.load(open(os.path.join(DATA, "before_renovation.json")))["tiny_metrics"],
     "recorded_x86_20261125.json (a 2-core x86-64 CPU, 2026-11-25)":
         json.load(open(os.path.join(DATA, "recorded_x86_20261125.json")))["tiny_metrics"],
 }
+# name -> the processor it was recorded on (cpu_identity()), where known
+RECORDED_ON = {
+    "recorded_x86_20261125.json (a 2-core x86-64 CPU, 2026-11-25)":
+        json.load(open(os.path.join(DATA, "recorded_x86_20261125.json"))).get("cpu"),
+}
 SAME_REL, SAME_ABS = 1e-5, 1e-9     # float rounding of one computation
-FIRST_LOSS_REL = 1e-3               # the same program on another processor: the first 20 updates
+# Across processors, measured between the two recordings above (two x86-64 CPUs, the same
+# code): the pretraining losses 7.4e-6 and 4.2e-5 relative apart; the schedule, the fields and
+# the pretraining pool (cache_size) equal. From the first evaluation on the physics moves
+# landings: iteration 1's eval_mean_dist 6.9% apart, iteration 3's 68%, the pool one episode
+# apart at iteration 3. The bound is ~25x the largest loss difference measured.
+CROSS_CPU_LOSS_REL = 1e-3
+ACROSS_CPUS = ("iteration", "phase", "trajectories", "updates", "eval_goals")
+VECTOR_FLAGS = ("sse4_1", "sse4_2", "avx", "avx2", "fma", "avx512f", "avx512dq", "avx512bw", "avx512vl",
+                "avx512_bf16", "avx512_fp16", "avx_vnni", "amx_bf16", "amx_tile", "asimd", "sve")
+
+# Practice as tests/data/before_renovation.json was recorded: goals on the table, only hits
+# landing near the opponent's half kept and the integrating action noise (the defaults since
+# issue #11 aim 0.2 m beyond the edges, keep every hit and hide the noise from the policy, which
+# would change the run's numbers).
+RECORDED_PRACTICE = {"practice_goal_margin": 0.0, "practice_keep": "near_half", "action_noise_form": "integrating"}
+
+
+def tiny_recorded(demo_dir, run_dir, **kw):
+    """The tiny run as the recordings were made: the oracle's demonstrations (conftest.py
+    oracle_demos), practice as RECORDED_PRACTICE, every checkpoint kept (keep_checkpoints=10:
+    tests/test_sharding.py compares weights at an early one; a resume may change it)."""
+    from training import runconfig
+    base = runconfig.tiny()
+    kw.setdefault("train", dataclasses.replace(base.train, **RECORDED_PRACTICE))
+    kw.setdefault("keep_checkpoints", 10)
+    return dataclasses.replace(base, demo_dir=demo_dir, demo_source="oracle", run_dir=str(run_dir), **kw)
+
+
+def cpu_identity() -> dict | None:
+    """{"model", "vector_flags"} of this machine's first processor (Linux), else None."""
+    try:
+        info = open("/proc/cpuinfo").read()
+    except OSError:
+        return None
+    fields = dict(line.split(":", 1) for line in info.split("\n\n")[0].splitlines() if ":" in line)
+    fields = {k.strip(): v.strip() for k, v in fields.items()}
+    flags = set((fields.get("flags") or fields.get("Features") or "").split())
+    model = fields.get("model name") or fields.get("CPU part")
+    return {"model": model, "vector_flags": sorted(flags & set(VECTOR_FLAGS))}
 
 
 def same_rows(got: list[dict], want: list[dict]) -> str | None:
@@ -42,16 +93,36 @@ def same_rows(got: list[dict], want: list[dict]) -> str | None:
     return None
 
 
+def within_cross_cpu_tolerance(got: list[dict], want: list[dict]) -> str | None:
+    """None if the rows agree in what processors agree on (see above), else the first difference."""
+    if [r["iteration"] for r in got] != [r["iteration"] for r in want]:
+        return "iterations differ"
+    for g, w in zip(got, want):
+        if sorted(set(g) - {"seconds"}) != sorted(set(w) - {"seconds"}):
+            return f"iteration {g['iteration']}: fields differ"
+        for k in ACROSS_CPUS:
+            if g.get(k) != w.get(k):
+                return f"iteration {g['iteration']}: {k} {g.get(k)!r} against {w.get(k)!r}"
+        if w["phase"] == "pretrain" and g["loss"] != pytest.approx(w["loss"], rel=CROSS_CPU_LOSS_REL):
+            return f"iteration {g['iteration']}: pretraining loss {g['loss']!r} against {w['loss']!r}"
+    return None
+
+
 def assert_reproduces_a_recording(got: list[dict]) -> str:
-    """The name of the recording `got` reproduces; skip on an unrecorded processor (see above);
-    AssertionError if the run is not the recorded computation at all."""
-    misses = {name: same_rows(got, rows) for name, rows in RECORDINGS.items()}
-    for name, miss in misses.items():
+    """Which recording `got` reproduces and how (see above); AssertionError naming the first
+    difference from each recording otherwise."""
+    here = cpu_identity()
+    exact = {name: same_rows(got, rows) for name, rows in RECORDINGS.items()}
+    for name, miss in exact.items():
         if miss is None:
             return name
-    first = got[0]["loss"]
-    if any(first == pytest.approx(rows[0]["loss"], rel=FIRST_LOSS_REL) for rows in RECORDINGS.values()):
-        pytest.skip(f"this processor's float rounding matches no recording ({misses}); if the code is unchanged, "
-                    f"record these rows as a new tests/data/recorded_*.json: {json.dumps(got)}")
-    raise AssertionError(f"not the recorded computation: first loss {first} against "
-                         f"{[rows[0]['loss'] for rows in RECORDINGS.values()]}; {misses}")
+    mine = [name for name, cpu in RECORDED_ON.items() if cpu is not None and cpu == here]
+    assert not mine, f"this processor recorded {mine[0]}, which the run no longer reproduces: {exact[mine[0]]}"
+    near = {name: within_cross_cpu_tolerance(got, rows) for name, rows in RECORDINGS.items()}
+    for name, miss in near.items():
+        if miss is None:
+            print(f"within the cross-processor tolerance of {name} (no recording reproduced to float "
+                  f"rounding: {exact}); to record this processor: {json.dumps({'cpu': here, 'tiny_metrics': got})}")
+            return f"{name} (across processors)"
+    raise AssertionError(f"not the recorded computation, even within the cross-processor tolerance: {near}; "
+                         f"to float rounding: {exact}")

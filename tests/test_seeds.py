@@ -16,8 +16,7 @@ from models.policy import init_ensemble, make_policy
 from training import budget, checkpoint, runconfig
 from training.seeds import SeedRuns, check_one_batch, pick_seed, seed_configs
 from training.trainer import Run
-from ttmjx.tools import demos
-from ttmjx.world import record, thrower
+from ttmjx.world import thrower
 from ttmjx.world.backends import Backend
 from ttmjx.world.goals import uniform_goals
 
@@ -26,11 +25,9 @@ NOT_COMPARED = ("seconds", "seeds_in_program")
 
 
 @pytest.fixture(scope="module")
-def demo_dir(tmp_path_factory):
-    d = str(tmp_path_factory.mktemp("demos"))
-    traj = demos.collect(runconfig.tiny().world, "oracle", 200, seed=5)
-    record.save(d, traj, {"source": "oracle", "distribution": "narrow", "seed": 5})
-    return d
+def demo_dir(oracle_demos):
+    """tiny's 200 oracle narrow demonstrations, seed 5 (conftest.py: made once for the session)."""
+    return oracle_demos
 
 
 def tiny(demo_dir, run_dir, **kw):

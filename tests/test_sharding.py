@@ -18,7 +18,7 @@ import jax
 import numpy as np
 import pytest
 
-from recorded import assert_reproduces_a_recording
+from recorded import assert_reproduces_a_recording, tiny_recorded
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -41,13 +41,9 @@ EXACT = ("iteration", "phase", "trajectories", "updates", "cache_size", "eval_go
 
 
 def tiny(demo_dir, run_dir, **kw):
-    """tiny with practice as before_renovation.json was recorded (on-table goals, near-half keep:
-    tests/test_trainer.py RECORDED_PRACTICE)."""
-    from training import runconfig
-    base = runconfig.tiny()
-    kw.setdefault("train", dataclasses.replace(base.train, practice_goal_margin=0.0, practice_keep="near_half",
-                                               action_noise_form="integrating"))
-    return dataclasses.replace(base, demo_dir=demo_dir, demo_source="oracle", run_dir=str(run_dir), **kw)
+    """tiny as recorded (tests/recorded.py tiny_recorded: practice as before_renovation.json was
+    recorded, every checkpoint kept)."""
+    return tiny_recorded(demo_dir, run_dir, **kw)
 
 
 def rows(run_dir):
@@ -125,7 +121,7 @@ def worker(out_path: str, demo_dir: str, tmp: str) -> None:
     jax.config.update("jax_compilation_cache_dir", os.environ.get("TTMJX_JAX_CACHE", os.path.join(ROOT, ".jax_cache")))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     report = {"device_count": jax.device_count(), "refused": refusals(demo_dir, tmp)}
-    cfg = tiny(demo_dir, f"{tmp}/d4", devices=4, keep_checkpoints=10)   # all kept: the parent resumes one
+    cfg = tiny(demo_dir, f"{tmp}/d4", devices=4)   # every checkpoint kept: the parent resumes one
     run = Run(cfg, evaluate=training_evaluation(cfg), progress=False)
     report["d4"] = run.run()
     report["placement"] = placement_report(run)
@@ -134,37 +130,33 @@ def worker(out_path: str, demo_dir: str, tmp: str) -> None:
 
 # -- the tests (this process: one device) -----------------------------------------------------
 @pytest.fixture(scope="module")
-def demo_dir(tmp_path_factory):
-    """tiny's 200 oracle (goal-directed striker) narrow demonstrations (those of tests/data/before_renovation.json)."""
-    from training import runconfig
-    from ttmjx.tools import demos
-    from ttmjx.world import record
-    d = str(tmp_path_factory.mktemp("demos"))
-    record.save(d, demos.collect(runconfig.tiny().world, "oracle", 200, seed=5), {"source": "oracle"})
-    return d
+def demo_dir(oracle_demos):
+    """tiny's 200 oracle (goal-directed striker) narrow demonstrations (those of
+    tests/data/before_renovation.json; conftest.py: made once for the session)."""
+    return oracle_demos
 
 
 @pytest.fixture(scope="module")
-def runs(demo_dir, tmp_path_factory):
+def runs(demo_dir, tmp_path_factory, request):
     """tiny on 4 simulated CPU devices (the subprocess: the run, the placement and compiled
-    collectives, the refusals) and, meanwhile, on this process's one device.
+    collectives, the refusals) and, meanwhile, on this process's one device: the session's
+    recorded tiny run (conftest.py recorded_tiny_run, also tests/test_trainer.py's reference),
+    trained here unless a module before this one did.
 
-    The 1-device run is made here, not in the subprocess: XLA's CPU client with 4 simulated
-    devices compiles even a one-device program a little differently (its last bits differ), so
-    only a 1-device process computes what one device computed before (before_renovation.json)."""
-    from eval.evaluate import training_evaluation
-    from training.trainer import Run
+    The 1-device run is made in this process, not in the subprocess: XLA's CPU client with 4
+    simulated devices compiles even a one-device program a little differently (its last bits
+    differ), so only a 1-device process computes what one device computed before
+    (before_renovation.json). Returns (the subprocess's directory, its report, the 1-device run)."""
     tmp = tmp_path_factory.mktemp("runs")
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=ROOT,
                XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=4")
     out = tmp / "report.json"
     p = subprocess.Popen([sys.executable, __file__, str(out), demo_dir, str(tmp)], env=env, cwd=ROOT,
                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    cfg = tiny(demo_dir, tmp / "d1", keep_checkpoints=10)   # all kept: compared at DETERMINISTIC_ITERATIONS
-    Run(cfg, evaluate=training_evaluation(cfg), progress=False).run()
+    d1, _ = request.getfixturevalue("recorded_tiny_run")
     log, _ = p.communicate(timeout=1500)
     assert p.returncode == 0, log[-5000:]
-    return tmp, json.load(open(out))
+    return tmp, json.load(open(out)), d1
 
 
 def assert_same_result(got: list[dict], want: list[dict]):
@@ -189,8 +181,8 @@ def assert_same_weights(a_dir, b_dir, step=None):
 
 
 def test_one_device_is_the_mesh_of_one_and_computes_the_recorded_numbers(runs):
-    tmp, _ = runs
-    assert_reproduces_a_recording(rows(tmp / "d1"))
+    _, _, d1 = runs
+    assert_reproduces_a_recording(rows(d1))
 
 
 def test_four_devices_reach_the_one_device_result(runs):
@@ -201,20 +193,20 @@ def test_four_devices_reach_the_one_device_result(runs):
     runs are then two draws of one experiment, compared only in their schedule (measured on a
     2-core x86-64 CPU: losses 1e-6 apart through iteration 3, 0.4% at iteration 4; the last
     evaluation 3 vs 2 goals of 32 within 30 cm)."""
-    tmp, report = runs
+    tmp, report, d1 = runs
     assert report["device_count"] == 4 and report["d4"]["finished"]
-    got, want = rows(tmp / "d4"), rows(tmp / "d1")
+    got, want = rows(tmp / "d4"), rows(d1)
     assert_same_result(got[:DETERMINISTIC_ITERATIONS], want[:DETERMINISTIC_ITERATIONS])
     schedule = ("iteration", "phase", "trajectories", "updates")
     assert [[r[k] for k in schedule] for r in got] == [[r[k] for k in schedule] for r in want]
-    assert_same_weights(tmp / "d4", tmp / "d1", step=DETERMINISTIC_ITERATIONS)
+    assert_same_weights(tmp / "d4", d1, step=DETERMINISTIC_ITERATIONS)
 
 
 def test_members_and_windows_are_split_and_the_pool_stays_put(runs):
     """tiny's 2 members on 4 devices: a (2 x 2) mesh, each member on 2 devices; the cache
     replicated. No compiled step moves more than one round's M new episodes between devices
     (the pool is 2048 rows); the MJX round gathers exactly those, played on separate devices."""
-    _, report = runs
+    _, report, _ = runs
     p = report["placement"]
     assert p["mesh"] == {"member": 2, "batch": 2}
     assert p["params_spec"] == "P('member',)" and p["params_devices"] == 4 and p["cache_replicated"]
@@ -227,7 +219,7 @@ def test_members_and_windows_are_split_and_the_pool_stays_put(runs):
 
 
 def test_a_four_device_checkpoint_resumes_on_one_device(runs, demo_dir, tmp_path):
-    tmp, _ = runs
+    tmp, _, _ = runs
     from eval.evaluate import training_evaluation
     from training import checkpoint
     from training.trainer import Run
@@ -247,7 +239,7 @@ def test_a_four_device_checkpoint_resumes_on_one_device(runs, demo_dir, tmp_path
 def test_counts_that_cannot_be_placed_are_refused_before_compiling(runs, demo_dir, tmp_path):
     """One line naming the counts, before any compilation (the CLI exits 2 on ValueError)."""
     from training.trainer import Run
-    _, report = runs
+    _, report, _ = runs
     want = {"members": r"train.members=3 cannot be placed on 2 devices: .*\(--devices 1, 3\)",
             "throws": r"episodes_per_ssp=34 gives each of train.members=2 members 17 throws, which 2 devices \(of 4\)",
             "batch": r"train.batch_size=15 cannot be split evenly over the 2 devices \(of 4\)",

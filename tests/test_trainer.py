@@ -17,8 +17,7 @@ from training import checkpoint, runconfig
 from training.pool import load_logs
 from training.trainer import Run, is_eval_iteration, practice_iterations, pretrain_iterations
 from training.update import acting_params
-from recorded import assert_reproduces_a_recording
-from ttmjx.tools import demos
+from recorded import RECORDED_PRACTICE, assert_reproduces_a_recording, tiny_recorded
 from ttmjx.world import record
 
 DATA = os.path.join(os.path.dirname(__file__), "data")
@@ -26,27 +25,16 @@ BEFORE = json.load(open(os.path.join(DATA, "before_renovation.json")))
 
 
 @pytest.fixture(scope="module")
-def demo_dir(tmp_path_factory):
-    """200 oracle (goal-directed striker) narrow demonstrations, collected once for the module."""
-    d = str(tmp_path_factory.mktemp("demos"))
-    cfg = runconfig.tiny()
-    traj = demos.collect(cfg.world, "oracle", 200, seed=5)
-    record.save(d, traj, {"source": "oracle", "distribution": "narrow", "seed": 5})
-    return d
-
-
-# Practice as tests/data/before_renovation.json was recorded: goals on the table, only hits
-# landing near the opponent's half kept and the integrating action noise (the defaults since
-# issue #11 aim 0.2 m beyond the edges, keep every hit and hide the noise from the policy, which
-# would change the run's numbers).
-RECORDED_PRACTICE = {"practice_goal_margin": 0.0, "practice_keep": "near_half", "action_noise_form": "integrating"}
+def demo_dir(oracle_demos):
+    """200 oracle (goal-directed striker) narrow demonstrations, seed 5 (conftest.py: made once
+    for the session)."""
+    return oracle_demos
 
 
 def tiny(demo_dir, run_dir, **kw):
-    base = runconfig.tiny()
-    kw.setdefault("train", dataclasses.replace(base.train, **RECORDED_PRACTICE))
-    # the demonstrations are the oracle's (as before issue 11): the config says so
-    return dataclasses.replace(base, demo_dir=demo_dir, demo_source="oracle", run_dir=str(run_dir), **kw)
+    """tiny as recorded (tests/recorded.py tiny_recorded: the oracle's demonstrations and practice
+    as tests/data/before_renovation.json was recorded, RECORDED_PRACTICE)."""
+    return tiny_recorded(demo_dir, run_dir, **kw)
 
 
 def final_params(run_dir):
@@ -67,11 +55,10 @@ def test_schedule_evaluates_lfp_point_and_end():
 
 
 @pytest.fixture(scope="module")
-def trained(demo_dir, tmp_path_factory):
-    """One uninterrupted tiny run (the reference for resume)."""
-    d = tmp_path_factory.mktemp("run_full")
-    out = train(tiny(demo_dir, d)).run()
-    return d, out
+def trained(recorded_tiny_run):
+    """One uninterrupted tiny run (the reference for resume; conftest.py: trained once for the
+    session, shared with tests/test_sharding.py)."""
+    return recorded_tiny_run
 
 
 def return_rate(run: Run, params, n: int = 64) -> float:
