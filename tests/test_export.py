@@ -16,7 +16,8 @@ import pytest
 from deploy import ROBOT_MODEL_ID, Contract, ExportError, load_export, read_contract
 from deploy.export import (CONTRACT_FILE, GOLDEN_FILE, MANIFEST_FILE, ONNX_FILE, WEIGHTS_FILE, export,
                            export_checkpoint, sha256_bytes)
-from deploy.numpy_policy import ExportedPolicy, PolicySpec, benchmark, tensor_shapes
+from deploy.numpy_policy import ExportedPolicy, PolicySpec, tensor_shapes
+from deploy.policy_bench import benchmark
 from models import (Normalizer, PolicyConfig, PolicyParams, init_ensemble, init_params, make_policy,
                     member)
 from ttmjx.world import env, observation

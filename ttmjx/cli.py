@@ -752,7 +752,7 @@ def robot_serve(a: RobotServeArgs) -> None:
 
 
 def robot_bench(a: RobotBenchArgs) -> None:
-    from deploy.numpy_policy import benchmark
+    from deploy.policy_bench import benchmark
     out = benchmark(a.kind, a.hidden, a.layers, a.members, steps=a.steps, threads=a.threads,
                     engine=a.engine, obs_size=a.obs_size, frame_stack=a.frame_stack)
     shape = f"[{a.frame_stack}, {a.obs_size}]" if a.kind == "framestack" else f"[{a.obs_size}]"
