@@ -35,7 +35,8 @@ def load_demos(cfg: RunConfig, progress: bool) -> record.Trajectories | None:
         return record.load(path)[0]
     backend = resolve_backend(cfg.backend)
     traj = demos.collect(cfg.world, cfg.demo_source, cfg.demos, cfg.seed + 10_000, backend, progress=progress)
-    record.save(path, traj, {"source": cfg.demo_source, "distribution": cfg.world.throws.name,
+    record.save(path, traj, {"source": cfg.demo_source, "source_version": demos.SOURCE_VERSION,
+                             "distribution": cfg.world.throws.name,
                              "seed": cfg.seed + 10_000, **demos.summary(traj, cfg.world)})
     return traj
 
