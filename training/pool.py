@@ -17,6 +17,7 @@ from training.runconfig import RunConfig
 from ttmjx.tools import demos
 from ttmjx.world import observation, record, thrower
 from ttmjx.world.backends import Backend, resolve_backend
+from ttmjx.world.config import World
 from ttmjx.world.goals import uniform_goals
 
 
@@ -26,6 +27,7 @@ def load_demos(cfg: RunConfig, progress: bool) -> record.Trajectories | None:
     if cfg.demos == 0:
         return None
     if cfg.demo_dir:
+        check_dataset(cfg.demo_dir, cfg.world)
         traj, _ = record.load(cfg.demo_dir)
         if traj.size < cfg.demos:
             raise ValueError(f"{cfg.demo_dir} holds {traj.size} demonstrations, the run asks for demos={cfg.demos}")
@@ -52,18 +54,84 @@ def episode_names(d: str) -> list[str]:
     return names
 
 
+def _read_meta(path: str) -> dict:
+    import json
+    try:
+        with open(path) as f:
+            meta = json.load(f)
+    except (OSError, ValueError) as e:
+        raise record.RecordError(f"{path}: unreadable metadata ({e})") from e
+    if not isinstance(meta, dict):
+        raise record.RecordError(f"{path}: metadata is not a JSON object")
+    return meta
+
+
+def check_dataset(directory: str, world: World) -> None:
+    """A demonstrations directory (--demo-dir) was collected in this run's world: the same
+    control rate, observation layout and episode length. Refused, naming both values, when not:
+    relabelled at another rate it would train on steps of the wrong length."""
+    _, meta_path = record.dataset_files(directory)
+    meta = _read_meta(meta_path)
+    theirs = meta.get("world")
+    if isinstance(theirs, dict):
+        hz = theirs.get("control_hz")
+        if hz is not None and hz != world.control_hz:
+            raise ValueError(f"--demo-dir {directory}: collected at {hz} Hz ({meta_path}), this run trains at "
+                             f"{world.control_hz} Hz (--world.control-hz); collect it again at {world.control_hz} Hz "
+                             f"(ttmjx demos --control-hz) or train at {hz} Hz")
+        vel = theirs.get("ball_velocity_obs")
+        if vel is not None and bool(vel) != world.ball_velocity_obs:
+            raise ValueError(f"--demo-dir {directory}: observation layout ball_velocity_obs={vel} ({meta_path}), this "
+                             f"run has --world.ball-velocity-obs {world.ball_velocity_obs}")
+    horizon = meta.get("horizon")
+    if horizon is not None and horizon != world.horizon:
+        raise ValueError(f"--demo-dir {directory}: episodes of {horizon} control steps ({meta_path}), this run's "
+                         f"are {world.horizon} ({world.episode_s:g} s at {world.control_hz} Hz); collect it again "
+                         f"in this run's world")
+
+
+def check_log(directory: str, name: str, world: World) -> None:
+    """A robot log (--data) was played under a contract this run can learn from: the run's
+    control rate, observation size and joint order. Refused, naming both values, when not."""
+    from ttmjx.world.config import JOINT_NAMES
+    meta_path = os.path.join(directory, f"{name}.meta.json")
+    contract = _read_meta(meta_path).get("contract")
+    if not isinstance(contract, dict):
+        return          # a log without its contract (older runner): nothing to compare
+    hz = contract.get("control_hz")
+    if hz is not None and float(hz) != float(world.control_hz):
+        raise ValueError(f"--data {directory}: {name} was played at {hz:g} Hz ({meta_path}), this run trains at "
+                         f"{world.control_hz} Hz (--world.control-hz); its steps would be relabelled as "
+                         f"{1000 / world.control_hz:g} ms apart instead of {1000 / hz:g} ms")
+    size = contract.get("obs_size")
+    if size is not None and size != world.obs_size:
+        raise ValueError(f"--data {directory}: {name} was played with {size}-value observations ({meta_path}), "
+                         f"this run's policy sees {world.obs_size} (--world.ball-velocity-obs "
+                         f"{world.ball_velocity_obs})")
+    names = contract.get("joint_names")
+    if names is not None and tuple(names) != JOINT_NAMES:
+        raise ValueError(f"--data {directory}: {name} has joint order {tuple(names)} ({meta_path}), "
+                         f"this run's is {JOINT_NAMES}")
+
+
 def check_sources(cfg: RunConfig) -> None:
-    """The demonstration dataset and robot log directories a run names exist (checked before
-    the run directory is created)."""
+    """The demonstration dataset and robot log directories a run names exist and were recorded
+    in this run's world (checked before the run directory is created)."""
     if cfg.demo_dir and cfg.demos:
-        record.dataset_files(cfg.demo_dir)
+        check_dataset(cfg.demo_dir, cfg.world)
     for d in cfg.data:
-        episode_names(d)
+        for n in episode_names(d):
+            check_log(d, n, cfg.world)
 
 
-def load_logs(paths, horizon: int) -> record.Trajectories | None:
-    """Robot logs (deploy episode directories) as one record padded/truncated to `horizon`."""
-    parts = [fit_horizon(record.load(d, n)[0], horizon) for d in paths for n in episode_names(d)]
+def load_logs(paths, horizon: int, world: World | None = None) -> record.Trajectories | None:
+    """Robot logs (deploy episode directories) as one record padded/truncated to `horizon`;
+    with `world`, each log's contract is checked against it first (check_log)."""
+    names = [(d, n) for d in paths for n in episode_names(d)]
+    if world is not None:
+        for d, n in names:
+            check_log(d, n, world)
+    parts = [fit_horizon(record.load(d, n)[0], horizon) for d, n in names]
     return record.concat(parts) if parts else None
 
 

@@ -68,6 +68,8 @@ class RunConfig:
         for name in ("demos", "pretrain_steps", "total_trajectories"):
             if getattr(self, name) < 0:
                 raise ValueError(f"RunConfig.{name}={getattr(self, name)}, expected >= 0")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise ValueError(f"--seed {self.seed}: expected 0 .. 2**32 - 1 = {MAX_SEED} (seeds outside wrap onto others)")
         if self.demo_source not in ("paper", "striker", "es", "oracle"):
             raise ValueError(f"RunConfig.demo_source={self.demo_source!r}, expected 'paper', 'striker', 'es' or 'oracle'")
         if self.devices is not None and self.devices < 1:
@@ -86,6 +88,24 @@ class RunConfig:
         if self.policy.obs_size != self.world.obs_size:
             raise ValueError(f"policy.obs_size={self.policy.obs_size} but the world observes "
                              f"{self.world.obs_size} values (world.ball_velocity_obs={self.world.ball_velocity_obs})")
+
+    def check_meaningful(self) -> None:
+        """Relations between fields under which a run would train but mean nothing (`ttmjx train`
+        refuses them at the door; ablations may build such cells on purpose and say so):
+        practice on with a budget that leaves none, a pool too small for the demonstrations."""
+        if self.practice and self.demos > 0 and self.total_trajectories <= self.demos:
+            raise ValueError(f"--total-trajectories {self.total_trajectories} does not exceed --demos {self.demos}: "
+                             f"no practice would happen; expected more than {self.demos} (or --no-practice)")
+        if self.train.capacity < self.demos:
+            raise ValueError(f"--train.capacity {self.train.capacity} is smaller than --demos {self.demos}: "
+                             f"{self.demos - self.train.capacity} of the demonstrations would be dropped; "
+                             f"expected >= {self.demos}")
+        if self.train.batch_size > self.train.capacity:
+            raise ValueError(f"--train.batch-size {self.train.batch_size} exceeds --train.capacity "
+                             f"{self.train.capacity}; expected <= {self.train.capacity}")
+
+
+MAX_SEED = 2 ** 32 - 1
 
 
 def _cpu_default() -> RunConfig:

@@ -142,7 +142,7 @@ class Run:
         """The state at iteration 0: the starting pool and freshly initialized members."""
         cfg = self.cfg
         key = jax.random.PRNGKey(cfg.seed)
-        logs = pool.load_logs(cfg.data, cfg.world.horizon) if cfg.data else None
+        logs = pool.load_logs(cfg.data, cfg.world.horizon, cfg.world) if cfg.data else None
         self._absorbed = [os.path.abspath(d) for d in cfg.data]
         cache, norm, seen = pool.starting_pool(cfg, pool.load_demos(cfg, self.progress), logs, self.backend, key)
         state = init_train_state(jax.random.fold_in(key, 1), cfg.policy, cfg.train, norm)
@@ -163,7 +163,7 @@ class Run:
                      f"{', '.join(d for d in cfg.data if d not in new)}")
         if not new:
             return ck
-        logs = pool.load_logs(new, cfg.world.horizon)
+        logs = pool.load_logs(new, cfg.world.horizon, cfg.world)
         cache = pool.append_record(ck.cache, logs, cfg)
         self.log(f"[ttmjx] added {int(cache.count - ck.cache.count)} of {logs.size} logged episodes "
                  f"from {', '.join(new)} to the cache")

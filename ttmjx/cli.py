@@ -51,6 +51,8 @@ class Report:
     NEW_FILES: ClassVar[tuple] = ()
 
     def __post_init__(self):
+        if isinstance(getattr(self, "seed", None), int):
+            check_range("seed", self.seed, 0, 2 ** 32 - 1)    # seeds outside wrap onto others
         for name, (low, high) in self.BOUNDS.items():
             check_range(name, getattr(self, name), low, high() if callable(high) else high)
         for name in self.NEW_DIRS:
@@ -239,6 +241,10 @@ class TrainArgs(Report):
     seeds: int = 1
     """Train seeds --seed .. --seed + N - 1 together in one program (training/seeds.py), each in
     RUN_DIR/seed<s>; 1: one run in RUN_DIR."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        self.config.check_meaningful()
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -558,6 +564,15 @@ def parse_train(argv: list[str]) -> TrainArgs:
     if given(argv, "--world.control-hz", "--world.max-physics-dt") and not given(argv, "--world.physics-dt"):
         argv = ["--world.physics-dt", "None", *argv]   # derived again from the new rate
     a = parse_args("train", TrainArgs, argv, default=TrainArgs(config=base))
+    if a.config.world.timing.ideal_timing:
+        ignored = [arg.split("=")[0] for arg in argv if arg.startswith("--world.timing.")
+                   and arg.split("=")[0].replace("_", "-") not in ("--world.timing.ideal-timing",
+                                                                   "--world.timing.no-ideal-timing",
+                                                                   "--world.timing.extrapolate-s")]
+        if ignored:
+            raise ValueError(f"{ignored[0]} would be ignored: this run's timing is ideal (--world.timing.ideal-timing, "
+                             f"preset {name}), which resets every delay and rate; add --world.timing.no-ideal-timing "
+                             f"to use it")
     if a.config.seed != 0 and not given(argv, "--run-dir"):
         a = dataclasses.replace(a, config=dataclasses.replace(
             a.config, run_dir=f"{base.run_dir}-seed{a.config.seed}"))
@@ -795,8 +810,15 @@ COMMANDS: dict[str, Command] = {
 # --------------------------------------------------------------------------------------------
 # Parsing and errors
 # --------------------------------------------------------------------------------------------
+FLAG_PREFIX = {"RunConfig": "--", "TrainConfig": "--train.", "PolicyConfig": "--policy.", "Robot": "--world.robot.",
+               "Throws": "--world.throws.", "Timing": "--world.timing."}
+
+
 def fail(name: str, message: str, code: int = 2) -> NoReturn:
     """One line on stderr and exit `code` (2: bad input; 1: the work itself failed)."""
+    if name == "train":            # a config's own message names its field: name the flag
+        message = re.sub(r"\b(RunConfig|TrainConfig|PolicyConfig|Robot|Throws|Timing)\.(\w+)=?",
+                         lambda m: FLAG_PREFIX[m[1]] + m[2].replace("_", "-") + " ", message)
     print(f"ttmjx{' ' + name if name else ''}: error: {' '.join(message.split())}", file=sys.stderr)
     sys.exit(code)
 
@@ -808,18 +830,27 @@ def file_error(e: OSError) -> str:
 
 
 def one_line(box: str) -> str:
-    """tyro's boxed error as one line: the box's first section, without borders or colours."""
-    kept = []
+    """tyro's boxed error as one line: the message section, without the title ('Value error'),
+    borders, rules, colours or the closing 'For full helptext' hint (rich draws the box in
+    unicode on a terminal and in ASCII when the streams are captured)."""
+    sections, current = [], []
     for line in re.sub(r"\x1b\[[0-9;]*m", "", box).splitlines():
         line = line.strip()
         if line.startswith(("╭", "╰")):
             continue
-        line = line.strip("│").strip()
-        if line and set(line) == {"─"}:
-            break
-        kept.append(line)
-    # A bound checked by an argument class: tyro prefixes its message with the class name.
-    return re.sub(r"^Error parsing \w+Args: ", "", " ".join(kept)) or box
+        line = line.strip("│|").strip()
+        if line and set(line) <= set("─-━═+"):
+            sections.append(current)
+            current = []
+        elif line:
+            current.append(line)
+    sections.append(current)
+    if "╭" not in box:
+        sections = sections[1:]          # the ASCII box's title ('Value error') above its first rule
+    sections = [s for s in sections if s and not s[0].startswith("For full helptext")]
+    text = " ".join(sections[0]) if sections else ""
+    # A bound checked by an argument class or a config: tyro prefixes its message with where.
+    return re.sub(r"^Error parsing [\w.]+: ", "", text) or box
 
 
 def parse_args(name: str, cls: type, argv: list[str], default: Any = None) -> Any:
