@@ -55,7 +55,7 @@ from deploy.goals import check_goals
 from deploy.runner import Runner, RunnerConfig
 from deploy.safety import count_violations
 from ttmjx.world import env, files, record, scene
-from ttmjx.world.config import TIMING_PROFILES, Timing, World
+from ttmjx.world.config import TIMING_PROFILES, Timing, World, physics_steps_per_sample
 from ttmjx.world.goals import goal_metrics
 
 # The robot's two controllers, in joint order: the gantry (Modbus) and the arm (EGM).
@@ -310,12 +310,7 @@ class SimStation:
         return q0
 
     def _steps_per(self, hz: float | None, name: str) -> int:
-        if hz is None:
-            return 1
-        k = 1.0 / (hz * self.cfg.physics_dt) if hz > 0 else 0.5
-        if abs(k - round(k)) > 1e-6 or round(k) < 1:
-            raise ValueError(f"{name}={hz} is not a whole number of {self.cfg.physics_dt}s physics steps")
-        return int(round(k))
+        return physics_steps_per_sample(hz, self.cfg.physics_dt, name)
 
     # ---------------------------------------------------------------------- state
     @property

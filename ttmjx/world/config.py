@@ -188,6 +188,19 @@ class Throws:
 
 THROW_DISTRIBUTIONS = ("narrow", "any", "varied")
 
+def physics_steps_per_sample(hz: float | None, physics_dt: float, name: str = "rate") -> int:
+    """Physics steps between two samples of a sensor at `hz` (None: every physics step); a rate
+    that is not a whole number of physics steps is a ValueError naming `name`. The one rule the
+    training world (ttmjx.world.timing) and the simulated station (deploy/station.py) share."""
+    if hz is None:
+        return 1
+    k = 1.0 / (hz * physics_dt) if hz > 0 else 0.5
+    if abs(k - round(k)) > 1e-6 or round(k) < 1:
+        raise ValueError(f"{name}={hz} is not a whole number of physics steps of {physics_dt:.6g} s "
+                         f"(1/(hz*dt) = {k:.4g}); pick a rate that divides it")
+    return int(round(k))
+
+
 @dataclasses.dataclass(frozen=True)
 class Timing:
     """When the policy's inputs were sensed and when its commands act: one model for the training
@@ -349,12 +362,7 @@ class World:
         if self.episode_s <= 0:
             raise ValueError(f"episode_s must be > 0, got {self.episode_s}")
         for name in ("tracker_hz", "joint_hz"):
-            hz = getattr(self.timing, name)
-            if hz is not None:
-                k = 1.0 / (hz * self.physics_dt)
-                if abs(k - round(k)) > 1e-6 or round(k) < 1:
-                    raise ValueError(f"timing.{name}={hz} is not a whole number of physics steps of "
-                                     f"{self.physics_dt:.6g} s (1/(hz*dt) = {k:.4g}); pick a rate that divides it")
+            physics_steps_per_sample(getattr(self.timing, name), self.physics_dt, f"timing.{name}")
         shortest = min(self.sample_period_s("tracker_hz"), self.sample_period_s("joint_hz"))
         if self.timing.jitter_s and self.timing.jitter_s >= shortest:
             raise ValueError(f"timing.jitter_s={self.timing.jitter_s} must be below the shortest sample "

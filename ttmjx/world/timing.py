@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from ttmjx.world import ballphysics
-from ttmjx.world.config import World
+from ttmjx.world.config import World, physics_steps_per_sample
 
 BALL, JOINT = 0, 1          # sensor ids in the per-sample random draws
 CANDIDATES = 4              # newest samples considered per read at least (drops skip to older ones)
@@ -54,7 +54,7 @@ class Draw(NamedTuple):
 
 def steps_per_sample(cfg: World, name: str) -> int:
     """E: physics steps per sample of timing.tracker_hz or timing.joint_hz."""
-    return max(1, int(round(cfg.sample_period_s(name) / cfg.physics_dt)))
+    return physics_steps_per_sample(getattr(cfg.timing, name), cfg.physics_dt, f"timing.{name}")
 
 
 def history_len(cfg: World) -> int:
