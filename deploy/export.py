@@ -442,20 +442,23 @@ def export(params, pcfg, world_cfg: World, out_dir: str, member: int | None = No
     runtime = runtime_contract(world_cfg, pcfg, control_hz)
     golden = golden_set(pcfg, tensors, runtime, world_cfg.table, golden_steps, seed)
     graph, graph_section = onnx_graph(spec, tensors, golden, onnx)
-    os.makedirs(out_dir, exist_ok=True)
-    meta = {"format": EXPORT_FORMAT, "kind": spec.kind}
-    written = {WEIGHTS_FILE: _save_tensors(os.path.join(out_dir, WEIGHTS_FILE), tensors, meta),
-               GOLDEN_FILE: _save_tensors(os.path.join(out_dir, GOLDEN_FILE), golden, meta)}
-    if graph is not None:
-        files.write_bytes(os.path.join(out_dir, ONNX_FILE), graph)
-        written[ONNX_FILE] = graph
-    doc = contract_doc(spec, tensors, runtime, world_cfg, written[WEIGHTS_FILE], written[GOLDEN_FILE],
-                       golden_steps, seed, source, members, graph_section)
-    written[CONTRACT_FILE] = (json.dumps(files.json_safe(doc), indent=1, allow_nan=False) + "\n").encode()
-    files.write_bytes(os.path.join(out_dir, CONTRACT_FILE), written[CONTRACT_FILE])
-    # Last: the manifest's presence marks a complete export (a crash before it leaves a
-    # directory that every loader refuses).
-    write_manifest(out_dir, written)
+    # Every file is written into a hidden staging directory that becomes out_dir only when the
+    # export is complete (files.staged_dir): a full disk or a kill leaves no half export under
+    # out_dir, so the same command runs again.
+    with files.staged_dir(out_dir, last=(MANIFEST_FILE,)) as stage:
+        meta = {"format": EXPORT_FORMAT, "kind": spec.kind}
+        written = {WEIGHTS_FILE: _save_tensors(os.path.join(stage, WEIGHTS_FILE), tensors, meta),
+                   GOLDEN_FILE: _save_tensors(os.path.join(stage, GOLDEN_FILE), golden, meta)}
+        if graph is not None:
+            files.write_bytes(os.path.join(stage, ONNX_FILE), graph)
+            written[ONNX_FILE] = graph
+        doc = contract_doc(spec, tensors, runtime, world_cfg, written[WEIGHTS_FILE], written[GOLDEN_FILE],
+                           golden_steps, seed, source, members, graph_section)
+        written[CONTRACT_FILE] = (json.dumps(files.json_safe(doc), indent=1, allow_nan=False) + "\n").encode()
+        files.write_bytes(os.path.join(stage, CONTRACT_FILE), written[CONTRACT_FILE])
+        # Last: the manifest's presence marks a complete export (a loader refuses a directory
+        # without it).
+        write_manifest(stage, written)
     return out_dir
 
 

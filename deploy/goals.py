@@ -52,32 +52,53 @@ def parse_goals(spec: str) -> np.ndarray:
     return check_goals(goals)
 
 
+GOAL_FILE_EXTENSIONS = (".json", ".npy", ".csv", ".txt")
+
+
 def load_goals(path: str) -> np.ndarray:
     """[N, 2] goals from a .json ([[x, y], ...] or {"goals": [...]}), .npy, or .csv/.txt file
-    (one 'x,y' per line, '#' comments)."""
+    (one 'x,y' per line, '#' comments, an optional header row 'x,y'). Every error names the file."""
     ext = os.path.splitext(path)[1].lower()
     if not os.path.isfile(path):
         raise FileNotFoundError(f"goal file {path!r} does not exist")
-    if ext == ".json":
-        with open(path) as f:
-            data = json.load(f)
-        if isinstance(data, dict):
-            if "goals" not in data:
-                raise ValueError(f"{path}: a JSON object needs a 'goals' key, got keys {sorted(data)}")
-            data = data["goals"]
-        return check_goals(data)
-    if ext == ".npy":
-        return check_goals(np.load(path, allow_pickle=False))
-    if ext in (".csv", ".txt"):
-        with open(path) as f:
+    if ext not in GOAL_FILE_EXTENSIONS:
+        raise ValueError(f"goal file {path!r}: unknown extension {ext!r}; use .json, .npy, .csv or .txt")
+    try:
+        if ext == ".json":
+            with open(path) as f:
+                try:
+                    data = json.load(f)
+                except ValueError as e:
+                    raise ValueError(f"not valid JSON ({e})") from None
+            if isinstance(data, dict):
+                if "goals" not in data:
+                    raise ValueError(f"a JSON object needs a 'goals' key, got keys {sorted(data)}")
+                data = data["goals"]
+            return check_goals(data)
+        if ext == ".npy":
+            try:
+                data = np.load(path, allow_pickle=False)
+            except (ValueError, OSError, EOFError) as e:
+                raise ValueError(f"not a plain numeric .npy array ({e})") from None
+            return check_goals(data)
+        with open(path, errors="replace") as f:
             lines = [ln.split("#")[0].strip() for ln in f]
-        return parse_goals(";".join(ln for ln in lines if ln))
-    raise ValueError(f"goal file {path!r}: unknown extension {ext!r}; use .json, .npy, .csv or .txt")
+        lines = [ln for ln in lines if ln]
+        if lines and lines[0].replace(" ", "").lower() == "x,y":
+            lines = lines[1:]           # the header row eval's goal files carry
+        return parse_goals(";".join(lines))
+    except UnicodeDecodeError as e:
+        raise ValueError(f"goal file {path!r}: not text ({e.reason})") from None
+    except ValueError as e:
+        raise ValueError(f"goal file {path!r}: {e}") from None
 
 
 def goals_from_arg(arg: str) -> np.ndarray:
-    """A path to an existing goal file, or an inline spec 'x,y;x,y'."""
-    return load_goals(arg) if os.path.isfile(arg) else parse_goals(arg)
+    """A path to an existing goal file, or an inline spec 'x,y;x,y' (a spec that names a goal
+    file, by its extension or a path separator, must be one: a missing file is said so)."""
+    if os.path.isfile(arg) or os.path.splitext(arg)[1].lower() in GOAL_FILE_EXTENSIONS or os.sep in arg:
+        return load_goals(arg)
+    return parse_goals(arg)
 
 
 def check_goal_region(goals, table: Table = Table()) -> np.ndarray:
@@ -117,4 +138,9 @@ def session_goals(spec: str, n: int, seed: int = 0, table: Table = Table()) -> n
         g = uniform_session_goals(n, seed, table)
     else:
         g = episode_goals(goals_from_arg(spec), n)
+        if os.path.isfile(spec):
+            try:
+                return check_goal_region(g, table)
+            except ValueError as e:
+                raise ValueError(f"goal file {spec!r}: {e}") from None
     return check_goal_region(g, table)

@@ -65,9 +65,11 @@ def tracks(traj: Trajectories, world: World) -> dict:
 def write_eval_dir(out: str, summary: dict, traj: Trajectories, world: World) -> None:
     """summary.json, episodes.csv and tracks.npz of one evaluation into `out` (new or empty)."""
     check_out_dir(out)
-    os.makedirs(out, exist_ok=True)
-    files.write_bytes(os.path.join(out, "episodes.csv"), episode_table(traj).encode())
-    buf = io.BytesIO()
-    np.savez(buf, **tracks(traj, world))
-    files.write_bytes(os.path.join(out, "tracks.npz"), buf.getvalue())
-    files.write_json(os.path.join(out, "summary.json"), summary)
+    # All three appear together (files.staged_dir): a full disk or a kill leaves `out` as it was,
+    # so the same command runs again.
+    with files.staged_dir(out, last=("summary.json",)) as stage:
+        files.write_bytes(os.path.join(stage, "episodes.csv"), episode_table(traj).encode())
+        buf = io.BytesIO()
+        np.savez(buf, **tracks(traj, world))
+        files.write_bytes(os.path.join(stage, "tracks.npz"), buf.getvalue())
+        files.write_json(os.path.join(stage, "summary.json"), summary)

@@ -7,13 +7,14 @@ libosmesa6). MUJOCO_GL=egl or MUJOCO_GL=osmesa forces one.
 from __future__ import annotations
 
 import ctypes.util
+import io
 import os
 
 import jax
 import mujoco
 import numpy as np
 
-from ttmjx.world import backends, env, observation, scene
+from ttmjx.world import backends, env, files, observation, scene
 from ttmjx.world.config import World
 from ttmjx.world.record import Trajectories
 
@@ -109,5 +110,7 @@ def render_throws(cfg: World, path: str, n: int = 3, seed: int = 0, source: str 
     frames = frames_of(cfg, traj)
     imgs = [Image.fromarray(f) for f in frames]
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    imgs[0].save(path, save_all=True, append_images=imgs[1:], duration=int(2000 / cfg.control_hz), loop=0)
+    buf = io.BytesIO()
+    imgs[0].save(buf, format="GIF", save_all=True, append_images=imgs[1:], duration=int(2000 / cfg.control_hz), loop=0)
+    files.write_bytes(path, buf.getvalue())    # whole or absent: never a truncated GIF under its name
     return path

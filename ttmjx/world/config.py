@@ -246,10 +246,14 @@ class Timing:
     refuses a real cell's timing for it)."""
 
     def __post_init__(self):
+        self._check()
         if self.ideal_timing:
             for f in dataclasses.fields(self):
                 if f.name not in ("ideal_timing", "extrapolate_s"):
                     object.__setattr__(self, f.name, f.default)
+
+    def _check(self):
+        """Every field in range (before ideal_timing resets them: a bad value is refused either way)."""
         for name in ("tracker_latency_s", "joint_latency_s", "action_delay_s", "jitter_s",
                      "extrapolate_s", "delay_spread_s"):
             v = getattr(self, name)
@@ -350,6 +354,10 @@ class World:
     def __post_init__(self):
         if not isinstance(self.control_hz, int) or self.control_hz <= 0:
             raise ValueError(f"control_hz must be a positive integer (20, 60 or 100), got {self.control_hz!r}")
+        _number("world.max_physics_dt", self.max_physics_dt, 0.0, 0.1, low_open=True, what="time step in seconds")
+        if self.physics_dt is not None:
+            _number("world.physics_dt", self.physics_dt, 0.0, 0.1, low_open=True, what="time step in seconds")
+        _number("world.episode_s", self.episode_s, 0.0, 60.0, low_open=True, what="time in seconds")
         if self.physics_dt is None:
             n = math.ceil(1.0 / (self.control_hz * self.max_physics_dt) - 1e-9)
             object.__setattr__(self, "physics_dt", 1.0 / (self.control_hz * n))
@@ -367,6 +375,7 @@ class World:
         if self.timing.jitter_s and self.timing.jitter_s >= shortest:
             raise ValueError(f"timing.jitter_s={self.timing.jitter_s} must be below the shortest sample "
                              f"period ({shortest:.6g} s)")
+        check_world(self)
 
     def sample_period_s(self, name: str) -> float:
         """Sample period (s) of timing.tracker_hz or timing.joint_hz (a physics step if None)."""
@@ -399,6 +408,129 @@ class World:
 
     def with_throws(self, name: str, **kw) -> "World":
         return dataclasses.replace(self, throws=dataclasses.replace(self.throws, name=name, **kw))
+
+
+def _flag(path: str) -> str:
+    """The command-line flag of a World field path ('world.throws.narrow_speed' -> '--world.throws.narrow-speed')."""
+    return "--" + path.replace("_", "-")
+
+
+def _bad(path: str, value, expected: str) -> ValueError:
+    shown = " ".join(f"{v:g}" if isinstance(v, float) else str(v) for v in value) \
+        if isinstance(value, (tuple, list)) else (f"{value:g}" if isinstance(value, float) else repr(value))
+    return ValueError(f"{_flag(path)} {shown}: expected {expected}")
+
+
+def _number(path: str, v, low: float | None = None, high: float | None = None, low_open: bool = False,
+            high_open: bool = False, what: str = "a number") -> None:
+    """v must be a finite real within [low, high] (open ends where asked)."""
+    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    if ok and low is not None:
+        ok = v > low if low_open else v >= low
+    if ok and high is not None:
+        ok = v < high if high_open else v <= high
+    if not ok:
+        bound = []
+        if low is not None:
+            bound.append(f"{'>' if low_open else '>='} {low:g}")
+        if high is not None:
+            bound.append(f"{'<' if high_open else '<='} {high:g}")
+        raise _bad(path, v, f"a finite {what}" + (f" {' and '.join(bound)}" if bound else ""))
+
+
+def _numbers(path: str, v, n: int, **kw) -> None:
+    if not isinstance(v, (tuple, list)) or len(v) != n:
+        raise _bad(path, v if isinstance(v, (tuple, list)) else (v,),
+                   f"{n} values, got {len(v) if isinstance(v, (tuple, list)) else 1}")
+    for i, x in enumerate(v):
+        try:
+            _number(path, x, **kw)
+        except ValueError:
+            raise _bad(path, v, f"finite values{_range_words(**kw)}; value {i + 1} is {x!r}") from None
+
+
+def _range_words(low=None, high=None, low_open=False, high_open=False, what=None) -> str:
+    words = []
+    if low is not None:
+        words.append(f"{'>' if low_open else '>='} {low:g}")
+    if high is not None:
+        words.append(f"{'<' if high_open else '<='} {high:g}")
+    return (" " + " and ".join(words)) if words else ""
+
+
+def _interval(path: str, v, **kw) -> None:
+    """A (lo, hi) range: two finite values, lo <= hi."""
+    _numbers(path, v, 2, **kw)
+    if v[0] > v[1]:
+        raise _bad(path, v, f"a range LO HI with LO <= HI (reversed: {v[1]:g} {v[0]:g}?)")
+
+
+def check_world(w: "World", prefix: str = "world") -> None:
+    """Every physics, geometry and throw field of `w` at the door: finite, in range, the right
+    length, ranges in order, and the relations MuJoCo's compiler or the thrower would otherwise
+    trip over later (or that would make no throw valid). ValueError names the flag
+    (--world.table.length), the value and what was expected."""
+    t, b, c, r, th = w.table, w.ball, w.contacts, w.robot, w.throws
+    for name in ("length", "width", "top_z", "thickness", "net_height", "net_length", "net_thickness"):
+        _number(f"{prefix}.table.{name}", getattr(t, name), 0.0, low_open=True, what="length in metres")
+    _number(f"{prefix}.ball.radius", b.radius, 0.0, 0.5, low_open=True, what="radius in metres")
+    _number(f"{prefix}.ball.mass", b.mass, 0.0, low_open=True, what="mass in kg")
+    for name in ("drag_coefficient", "magnus_coefficient", "angular_drag_coefficient", "air_density"):
+        _number(f"{prefix}.ball.{name}", getattr(b, name), 0.0)
+    for part in ("table", "paddle", "net"):
+        _number(f"{prefix}.contacts.{part}_stiffness", getattr(c, f"{part}_stiffness"), 0.0, low_open=True)
+        _number(f"{prefix}.contacts.{part}_damping", getattr(c, f"{part}_damping"), 0.0)
+        _number(f"{prefix}.contacts.{part}_friction", getattr(c, f"{part}_friction"), 0.0)
+    _number(f"{prefix}.contacts.impedance", c.impedance, 0.0, 1.0, low_open=True, high_open=True)
+    rp = f"{prefix}.robot"
+    for name in ("base_x", "base_y", "base_z"):
+        _number(f"{rp}.{name}", getattr(r, name))
+    _numbers(f"{rp}.lower", r.lower, 8)
+    _numbers(f"{rp}.upper", r.upper, 8)
+    for i, (lo, hi) in enumerate(zip(r.lower, r.upper)):
+        if not lo < hi:
+            raise ValueError(f"{_flag(rp + '.lower')} / {_flag(rp + '.upper')}: joint {JOINT_NAMES[i]} has lower "
+                             f"{lo:g} >= upper {hi:g}; expected lower < upper for every joint")
+    _numbers(f"{rp}.max_speed", r.max_speed, 8, low=0.0, low_open=True)
+    _number(f"{rp}.speed_margin", r.speed_margin, 0.0, 1.0, low_open=True)
+    _numbers(f"{rp}.link_masses", r.link_masses, 7, low=0.0, low_open=True)
+    for name in ("gantry_mass", "paddle_mass", "extension", "blade_thickness", "servo_omega", "servo_damping"):
+        _number(f"{rp}.{name}", getattr(r, name), 0.0, low_open=True)
+    _numbers(f"{rp}.blade_half_size", r.blade_half_size, 2, low=0.0, low_open=True)
+    _numbers(f"{rp}.armature", r.armature, 8, low=0.0)
+    _numbers(f"{rp}.home", r.home, 8)
+    _numbers(f"{rp}.home_noise", r.home_noise, 8, low=0.0)
+    for i, (h, lo, hi) in enumerate(zip(r.home, r.lower, r.upper)):
+        if not lo <= h <= hi:
+            raise ValueError(f"{_flag(rp + '.home')}: joint {JOINT_NAMES[i]} at {h:g} is outside its limits "
+                             f"[{lo:g}, {hi:g}]; expected a home pose within --world.robot.lower/upper")
+    tp = f"{prefix}.throws"
+    _number(f"{tp}.max_spin", th.max_spin, 0.0)
+    _numbers(f"{tp}.narrow_launch", th.narrow_launch, 3)
+    for name in ("narrow_aim_x", "narrow_aim_y", "any_launch_x", "any_launch_y", "any_launch_z", "any_aim_x",
+                 "any_aim_y", "varied_yaw_deg", "varied_distance"):
+        _interval(f"{tp}.{name}", getattr(th, name))
+    for name in ("narrow_speed", "any_speed"):
+        _interval(f"{tp}.{name}", getattr(th, name), low=0.0, low_open=True)
+    _numbers(f"{tp}.varied_launch_x", th.varied_launch_x, 3)
+    _numbers(f"{tp}.varied_launch_yz", th.varied_launch_yz, 2)
+    _number(f"{tp}.varied_speed", th.varied_speed, 0.0, low_open=True, what="speed in m/s")
+    _number(f"{tp}.max_pitch", th.max_pitch, 0.0, math.pi / 2, low_open=True, high_open=True, what="angle in rad")
+    _number(f"{tp}.net_margin", th.net_margin, 0.0, what="margin in metres")
+    _number(f"{tp}.solve_tol", th.solve_tol, 0.0, low_open=True, what="tolerance in metres")
+    _number(f"{tp}.max_flight_s", th.max_flight_s, 0.0, low_open=True, what="time in seconds")
+    # The fastest possible flight: the shortest horizontal distance from a launch to an aim at the
+    # highest speed; a limit below it leaves no valid throw (every candidate redrawn forever).
+    if th.name == "narrow":
+        dist, speed = th.narrow_launch[0] - th.narrow_aim_x[1], th.narrow_speed[1]
+    elif th.name == "any":
+        dist, speed = th.any_launch_x[0] - th.any_aim_x[1], th.any_speed[1]
+    else:
+        dist, speed = th.varied_distance[0], th.varied_speed
+    if dist > 0 and th.max_flight_s < dist / speed:
+        raise _bad(f"{tp}.max_flight_s", th.max_flight_s,
+                   f"at least {dist / speed:.3g} s: the fastest {th.name} throw needs that long to cover "
+                   f"{dist:.3g} m at {speed:g} m/s, so no throw would be valid")
 
 
 def to_dict(cfg) -> dict:

@@ -90,3 +90,44 @@ def first_mismatch(directory: str, expected: dict[str, str]) -> str | None:
         if digests[path] != digest:
             return f"{path}: checksum mismatch"
     return None
+
+
+class staged_dir:
+    """`with staged_dir(final) as tmp:` write a directory's files into `tmp` (a hidden sibling of
+    `final`); on success they appear under `final` at once (a rename; into an existing directory
+    that holds other files, file by file with the names in `last`, such as a manifest, moved
+    last), on an error or a signal the staging directory is removed and
+    `final` is left as it was. A full disk or a kill can therefore never leave half of an
+    export or of an evaluation's records under the final name."""
+
+    def __init__(self, final: str, last: tuple[str, ...] = ()):
+        self.final, self.last = os.path.abspath(final), tuple(last)
+
+    def __enter__(self) -> str:
+        parent = os.path.dirname(self.final)
+        os.makedirs(parent, exist_ok=True)
+        self.tmp = tempfile.mkdtemp(prefix=f".{os.path.basename(self.final)}.partial-", dir=parent)
+        return self.tmp
+
+    def __exit__(self, kind, value, tb) -> bool:
+        import shutil
+        if kind is not None:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+            return False
+        try:
+            if not os.path.exists(self.final) or (os.path.isdir(self.final) and not os.listdir(self.final)):
+                os.replace(self.tmp, self.final)        # an empty directory is replaced whole
+            else:
+                names = sorted(os.listdir(self.tmp), key=lambda n: (n in self.last, n))
+                for name in names:
+                    os.replace(os.path.join(self.tmp, name), os.path.join(self.final, name))
+                os.rmdir(self.tmp)
+            fd = os.open(os.path.dirname(self.final), os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        except BaseException:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+            raise
+        return False
