@@ -137,3 +137,154 @@ def test_bad_input_is_one_line_and_changes_nothing(name, argv, scratch):
     assert "Traceback" not in msg, msg
     assert msg.startswith("ttmjx") and msg.count("\n") == 1, repr(msg)
     assert listing(scratch) == before, sorted(listing(scratch) - before)
+
+
+# -- issue 26: the message names the culprit -------------------------------------------------
+TRAIN = "train --preset tiny --run-dir {tmp}/r --max-iterations 1"
+NAMED = [   # (argv, exit code, substrings the one line must hold)
+    # physics and geometry that failed inside MuJoCo's XML compiler or with a ZeroDivisionError
+    (TRAIN + " --world.table.length -2", 2, ["--world.table.length", "-2", "> 0"]),
+    (TRAIN + " --world.ball.mass 0", 2, ["--world.ball.mass", "0", "> 0"]),
+    (TRAIN + " --world.physics-dt 0", 2, ["--world.physics-dt", "0", "> 0"]),
+    (TRAIN + " --world.ball.radius nan", 2, ["--world.ball.radius", "nan", "finite"]),
+    (TRAIN + " --world.robot.lower 1 1 1 1 1 1 1 1", 2, ["--world.robot.lower", "gantry_x", "lower < upper"]),
+    (TRAIN + " --world.robot.home 0 0 0 0 0 0 0 9", 2, ["--world.robot.home", "j6", "outside"]),
+    # reversed ranges, wrong lengths, tolerances and flight times under which no throw is valid
+    (TRAIN + " --world.throws.narrow-speed 9 6", 2, ["--world.throws.narrow-speed", "9 6", "LO <= HI"]),
+    (TRAIN + " --world.throws.narrow-launch 1.75 0.35", 2, ["--world.throws.narrow-launch", "3 values", "got 2"]),
+    (TRAIN + " --world.throws.solve-tol 0", 2, ["--world.throws.solve-tol", "> 0"]),
+    (TRAIN + " --world.throws.max-flight-s 0.1", 2, ["--world.throws.max-flight-s", "0.1", "no throw"]),
+    # relations between fields: no practice, demonstrations dropped
+    (TRAIN + " --total-trajectories 100", 2, ["--total-trajectories 100", "--demos 200", "no practice"]),
+    (TRAIN + " --train.capacity 1", 2, ["--train.capacity 1", "--demos 200", "199"]),
+    # seeds that would wrap onto others
+    (TRAIN + " --seed -1", 2, ["--seed -1", "4294967295"]),
+    (TRAIN + " --seed 4294967296", 2, ["--seed 4294967296", "4294967295"]),
+    ("throw --seed 4294967296", 2, ["--seed", "4294967295"]),
+    # an option parsed and ignored: the tiny preset's timing is ideal
+    (TRAIN + " --world.timing.tracker-latency-s 0.01", 2, ["--world.timing.tracker-latency-s", "ignored"]),
+    (TRAIN + " --world.timing.jitter-s -1", 2, ["--world.timing.jitter-s", "-1"]),
+    # config classes' own messages name the flag, not the class
+    (TRAIN + " --train.window 0", 2, ["--train.window 0", ">= 1"]),
+    # goal files of the robot runner name the file
+    ("robot run --policy {empty} --station fake --goals {tmp}/missing.npy", 2, ["missing.npy", "does not exist"]),
+    ("robot run --policy {empty} --station fake --goals {tmp}/missing.csv", 2, ["missing.csv", "does not exist"]),
+    ("robot run --policy {empty} --station fake --goals {tmp}/junk.json", 2, ["junk.json", "not valid JSON"]),
+    ("robot run --policy {empty} --station fake --goals {tmp}/wide.npy", 2, ["wide.npy", "[N, 2]"]),
+    ("robot run --policy {empty} --station fake --goals {tmp}/garbage.npy", 2, ["garbage.npy", ".npy"]),
+    ("robot run --policy {empty} --station fake --goals {tmp}/goals.csv", 2, ["goals.csv", "not finite"]),
+    ("robot run --policy {empty} --station fake --goals {tmp}/own_half.csv", 2, ["own_half.csv", "opponent's half"]),
+    ("eval " + RUN + " --goals {tmp}/wide.npy", 2, ["wide.npy", "[N, 2]"]),
+    ("eval " + RUN + " --goals {tmp}/missing.npy", 2, ["missing.npy", "does not exist"]),
+    ("eval " + RUN + " --goals {tmp}/goals.csv", 2, ["goals.csv", "not finite"]),
+    # data of another control rate or observation layout, refused when it enters
+    (TRAIN + " --demo-dir {tmp}/demos50", 2, ["--demo-dir", "50 Hz", "100 Hz"]),
+    (TRAIN + " --demo-dir {tmp}/demos_vel", 2, ["--demo-dir", "ball_velocity_obs=True", "False"]),
+    (TRAIN + " --data {tmp}/logs50", 2, ["--data", "50 Hz", "100 Hz", "ep0"]),
+    (TRAIN + " --data {tmp}/logs16", 2, ["--data", "16-value", "13"]),
+    (TRAIN + " --data {tmp}/logs_order", 2, ["--data", "joint order"]),
+]
+
+
+def write_dataset(d, world_fields: dict, horizon: int = 160):
+    import json
+    from ttmjx.world import record
+    os.makedirs(d)
+    np.savez(os.path.join(d, "trajectories.npz"), x=np.zeros(1))
+    with open(os.path.join(d, "trajectories.meta.json"), "w") as f:
+        json.dump({"schema_version": record.SCHEMA_VERSION, "n": 200, "horizon": horizon, "world": world_fields}, f)
+
+
+def write_log(d, **contract):
+    import json
+    from ttmjx.world.config import JOINT_NAMES
+    os.makedirs(d)
+    c = {"control_hz": 100.0, "obs_size": 13, "joint_names": list(JOINT_NAMES), **contract}
+    with open(os.path.join(d, "ep0.meta.json"), "w") as f:
+        json.dump({"schema_version": 1, "n": 1, "contract": c}, f)
+
+
+@pytest.fixture()
+def named_scratch(scratch):
+    (scratch / "junk.json").write_text("nonsense\n")
+    (scratch / "garbage.npy").write_bytes(b"garbage")
+    write_dataset(str(scratch / "demos50"), {"control_hz": 50}, horizon=80)
+    write_dataset(str(scratch / "demos_vel"), {"control_hz": 100, "ball_velocity_obs": True})
+    write_log(str(scratch / "logs50"), control_hz=50.0)
+    write_log(str(scratch / "logs16"), obs_size=16)
+    write_log(str(scratch / "logs_order"), joint_names=["j1", "gantry_x", "gantry_y", "j2", "j3", "j4", "j5", "j6"])
+    return scratch
+
+
+@pytest.mark.parametrize("argv,code,words", NAMED, ids=[a.replace(TRAIN, "train") for a, _, _ in NAMED])
+def test_the_message_names_the_culprit(argv, code, words, named_scratch):
+    argv = argv.replace("{tmp}", str(named_scratch)).replace("{empty}", str(named_scratch / "empty")).split()
+    before = listing(named_scratch)
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err), \
+            pytest.raises(SystemExit) as ex:
+        cli.main(argv)
+    msg = err.getvalue()
+    assert ex.value.code == code, (argv, ex.value.code, msg)
+    assert msg.startswith("ttmjx") and msg.count("\n") == 1 and "Traceback" not in msg, repr(msg)
+    for w in words:
+        assert w in msg, (w, msg)
+    assert listing(named_scratch) == before            # nothing written: no run directory either
+
+
+def test_logs_of_another_rate_are_refused_where_they_are_loaded(tmp_path):
+    """The trainer's own loader checks the contract too (a resumed run's --data)."""
+    from training.pool import load_logs
+    from ttmjx.world.config import World
+    write_log(str(tmp_path / "logs50"), control_hz=50.0)
+    with pytest.raises(ValueError, match=r"50 Hz .* 100 Hz"):
+        load_logs([str(tmp_path / "logs50")], 160, World())
+
+
+def test_a_staged_directory_is_whole_or_absent(tmp_path):
+    """export and eval --out write through files.staged_dir: a failure part-way (a full disk, a
+    kill) leaves the final name as it was, and the same command can run again."""
+    from ttmjx.world import files
+    out = tmp_path / "export"
+    with pytest.raises(OSError, match="No space"):
+        with files.staged_dir(str(out)) as stage:
+            files.write_bytes(os.path.join(stage, "weights.safetensors"), b"w" * 100)
+            raise OSError(28, "No space left on device")
+    assert not out.exists() and os.listdir(tmp_path) == []
+    with files.staged_dir(str(out), last=("manifest.json",)) as stage:
+        for name in ("manifest.json", "weights.safetensors"):
+            files.write_bytes(os.path.join(stage, name), name.encode())
+    assert sorted(os.listdir(out)) == ["manifest.json", "weights.safetensors"] and os.listdir(tmp_path) == ["export"]
+    (tmp_path / "empty").mkdir()        # an empty --out is replaced whole
+    with files.staged_dir(str(tmp_path / "empty")) as stage:
+        files.write_bytes(os.path.join(stage, "summary.json"), b"{}")
+    assert os.listdir(tmp_path / "empty") == ["summary.json"]
+
+
+def test_eval_out_is_whole_or_absent_on_a_full_disk(tmp_path, monkeypatch):
+    """A full disk while eval writes its records leaves no episodes.csv behind: the same command
+    runs again into the same --out."""
+    from eval import report
+    from ttmjx.world import files
+    real = files.write_bytes
+
+    def full_after_first(path, data):
+        if path.endswith("tracks.npz"):
+            raise OSError(28, "No space left on device", path)
+        real(path, data)
+    monkeypatch.setattr(files, "write_bytes", full_after_first)
+    from ttmjx.world.config import World
+    from ttmjx.world.record import Trajectories
+    b, t = 2, 4
+    shapes = {"obs": (b, t, 13), "ball_vel": (b, t, 3), "actions": (b, t, 8), "valid": (b, t), "goal": (b, 2),
+              "hit": (b,), "hit_step": (b,), "landing": (b, 2), "on_opponent": (b,), "bounce_own": (b,), "net": (b,),
+              "launch_pos": (b, 3), "launch_vel": (b, 3), "launch_spin": (b, 3), "aim": (b, 2)}
+    traj = Trajectories(**{k: np.zeros(v, bool if k in ("valid", "hit", "on_opponent", "bounce_own", "net")
+                                       else np.int32 if k == "hit_step" else np.float32) for k, v in shapes.items()})
+    out = tmp_path / "ev"
+    with pytest.raises(OSError, match="No space"):
+        report.write_eval_dir(str(out), {"a": 1}, traj, World())
+    assert not out.exists() and os.listdir(tmp_path) == []
+    monkeypatch.setattr(files, "write_bytes", real)
+    report.write_eval_dir(str(out), {"a": 1}, traj, World())     # the same command again
+    assert sorted(os.listdir(out)) == ["episodes.csv", "summary.json", "tracks.npz"]
