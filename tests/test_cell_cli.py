@@ -1,0 +1,49 @@
+"""`ttmjx robot run --station cell --config cell.toml` (the command users are told to use for the
+real cell, issue 26) plays an export through the drivers against `ttmjx robot serve` over
+loopback sockets, and writes its episode logs."""
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip("abb_robot_client")
+pytest.importorskip("pymodbus")
+
+from deploy.drivers import config as cellconfig          # noqa: E402
+from deploy.drivers.cell import serving                  # noqa: E402
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+RUN = os.path.join(ROOT, "tests", "data", "tiny_run_v0")
+
+
+def ttmjx(*args, timeout=300):
+    env = {**os.environ, "PYTHONPATH": ROOT, "JAX_PLATFORMS": "cpu"}
+    return subprocess.run([sys.executable, "-m", "ttmjx.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, env=env)
+
+
+def test_robot_run_reaches_the_cell_station(tmp_path):
+    export = tmp_path / "export"
+    done = ttmjx("export", RUN, "--out", str(export), "--control-hz", "20", "--onnx", "off", "--json")
+    assert done.returncode == 0, done.stderr[-2000:]
+    missing = ttmjx("robot", "run", "--policy", str(export), "--station", "cell", "--goals", "five")
+    assert missing.returncode == 2 and "--config" in missing.stderr and missing.stderr.count("\n") == 1, missing.stderr
+    config = tmp_path / "cell.toml"
+    config.write_text(cellconfig.to_toml(cellconfig.loopback_config()))
+    out = tmp_path / "logs"
+    with serving(config, "--policy", str(export), "--seed", "3", env={"JAX_PLATFORMS": "cpu"}):
+        played = ttmjx("robot", "run", "--policy", str(export), "--station", "cell", "--config", str(config),
+                       "--goals", "0.7,0.3", "--stale-ms", "250", "--out", str(out), "--json")
+    assert played.returncode in (0, 1), played.stderr[-2000:]      # 1: an episode cut short by a stall
+    summary = json.loads(played.stdout.strip().splitlines()[-1])
+    print({k: summary.get(k) for k in ("episodes", "goals", "mode", "faults")})
+    assert summary["goals"] == 1 and summary["episodes"] >= 0, summary
+    assert os.path.isdir(out) and any(f.endswith(".meta.json") for f in os.listdir(out)), os.listdir(out)
+
+
+def test_robot_run_cell_without_config_is_one_line(tmp_path):
+    done = ttmjx("robot", "run", "--policy", str(tmp_path), "--station", "cell", "--goals", "five")
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert "--config" in done.stderr or "export" in done.stderr, done.stderr
