@@ -288,3 +288,13 @@ def test_eval_out_is_whole_or_absent_on_a_full_disk(tmp_path, monkeypatch):
     monkeypatch.setattr(files, "write_bytes", real)
     report.write_eval_dir(str(out), {"a": 1}, traj, World())     # the same command again
     assert sorted(os.listdir(out)) == ["episodes.csv", "summary.json", "tracks.npz"]
+
+
+def test_a_torn_metrics_line_is_dropped_and_said_and_a_damaged_one_named(tmp_path):
+    from training.runlog import MetricsLog
+    log = MetricsLog(str(tmp_path))
+    (tmp_path / "metrics.jsonl").write_text('{"iteration": 0}\n{"iteration": 1}\n{"itera')
+    assert log.rows() == [{"iteration": 0}, {"iteration": 1}] and log.torn == '{"itera'
+    (tmp_path / "metrics.jsonl").write_text('{"iteration": 0}\nnot json\n{"iteration": 2}\n')
+    with pytest.raises(ValueError, match=r"metrics.jsonl: line 2 is not a JSON row"):
+        log.rows()

@@ -17,15 +17,23 @@ class MetricsLog:
         self.run_dir = run_dir
         self.path = os.path.join(run_dir, "metrics.jsonl")
         self._writer = None
+        self.torn = ""          # a last line cut short by a crash mid-append, dropped by rows()
 
     def rows(self) -> list[dict]:
         """The rows written; a last line cut short by a crash mid-append is dropped."""
         if not os.path.exists(self.path):
             return []
         lines = [line for line in open(self.path) if line.strip()]
+        self.torn = ""
         if lines and not lines[-1].endswith("\n"):
-            lines = lines[:-1]
-        return [json.loads(line) for line in lines]
+            self.torn = lines.pop()
+        rows = []
+        for i, line in enumerate(lines):
+            try:
+                rows.append(json.loads(line))
+            except ValueError as e:
+                raise ValueError(f"{self.path}: line {i + 1} is not a JSON row ({e}); repair or remove it") from None
+        return rows
 
     def start(self):
         self._replace([])

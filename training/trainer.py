@@ -213,8 +213,15 @@ class Run:
         path = os.path.join(self.cfg.run_dir, "config.json")
         if not os.path.exists(path):
             return {}
-        with open(path) as f:
-            return json.load(f)
+        try:
+            with open(path) as f:
+                saved = json.load(f)
+        except ValueError as e:
+            raise ValueError(f"{path}: not valid JSON ({e}); restore it, or delete it to resume with this "
+                             f"command's config (the checkpoints carry their own)") from None
+        if not isinstance(saved, dict):
+            raise ValueError(f"{path}: not a JSON object; restore it or delete it")
+        return saved
 
     def check_same_config(self, saved: dict):
         """ValueError if `saved` (a run's config) computes differently from this run's."""
@@ -232,6 +239,11 @@ class Run:
         os.makedirs(self.log_dir, exist_ok=True)
         ck = self.restore()
         if ck is None:
+            old_rows = self.metrics.rows()
+            if old_rows:
+                raise ValueError(f"{cfg.run_dir}: checkpoints/ holds no checkpoint but metrics.jsonl has "
+                                 f"{len(old_rows)} rows of an earlier run; restore checkpoints/ or choose a new "
+                                 f"--run-dir (the old metrics are kept, not overwritten)")
             if mesh.is_primary():
                 write_config(cfg)
             ck = self.initial()
@@ -240,6 +252,9 @@ class Run:
             return ck
         self.log(f"[ttmjx] resuming {cfg.run_dir} at iteration {int(ck.counters.iteration)}")
         self.metrics.truncate(int(ck.counters.iteration))
+        if self.metrics.torn:
+            self.log(f"[ttmjx] {self.metrics.path}: its last line was cut short ({len(self.metrics.torn)} bytes, a crash "
+                     f"mid-write) and is dropped; the rows up to the checkpoint are kept and the rest is redone")
         return self.absorb_logs(ck) if cfg.data else ck
 
     # -- one iteration -----------------------------------------------------------------------
