@@ -78,7 +78,7 @@ def _bench(name: str, seeds: int, reps: int, demos: int | None, backend: str | N
     keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(base, 0)
     out = {"preset": name, "seeds": seeds, "backend": be.name, "episodes_per_round": m * seeds,
            "updates_per_round": cfg.steps_between_ssp * seeds, "setup_s": setup_s,
-           "device": jax.devices()[0].device_kind if be.name == "mjx" else f"cpu x{os.cpu_count()}"}
+           "device": be.kind.device()}
 
     def piece(label: str, fn):
         first, steady, res = timed(fn, reps)

@@ -28,7 +28,7 @@ from training.config import TrainConfig
 from training.mesh import Layout, single_device
 from training.update import TrainState, acting_params, make_train_loop, state_sharding, train_loop_fn
 from ttmjx.world import thrower
-from ttmjx.world.backends import Backend
+from ttmjx.world.backends import Backend, backend_kind
 from ttmjx.world.config import World
 from ttmjx.world.goals import goal_stats, uniform_goals
 from ttmjx.world.record import Trajectories
@@ -102,7 +102,7 @@ def over_seeds(fn, backend: str):
     vmap (one wider program). On MuJoCo C's CPU a loop over the seeds inside the program: the
     updates already keep the cores busy, and XLA:CPU's batched matrix products were slower than
     the seeds one after another (3 seeds: 13.4 s against 3 x 3.5 s per round, docs/BENCHMARKS.md)."""
-    if backend == "mjx":
+    if backend_kind(backend).traceable:
         return jax.vmap(fn)
     return lambda state, cache, key: jax.lax.map(lambda a: fn(*a), (state, cache, key))
 
@@ -132,7 +132,7 @@ class Practice:
         self._sample_throws = jax.jit(over(lambda k: thrower.sample_throws(k, world, THROW_BLOCK * episodes)))
         self._bank = (None, None)
         policy = practice_policy(pcfg, tcfg)
-        pure = self._pure_parts(backend.rollout_fn(policy, members=tcfg.members)) if backend.name == "mjx" else None
+        pure = self._pure_parts(backend.rollout_fn(policy, members=tcfg.members)) if backend.kind.traceable else None
         self._round = self._compiled_round(pure) if pure else self._host_round(policy)
 
     def _pure_parts(self, rollout) -> RoundParts:

@@ -1,7 +1,6 @@
 """Throughput of the simulated world (`ttmjx bench`): physics steps and throws per second."""
 from __future__ import annotations
 
-import os
 import time
 
 import jax
@@ -52,8 +51,8 @@ def task_rate(cfg: World, backend: str, batch: int, repeats: int = 2, nthread: i
         tr = be.rollout(policy, None, jax.random.PRNGKey(r + 1), th, goals)
         jax.block_until_ready(tr.obs)
         times.append(time.perf_counter() - t0)
-    # The C backend stops once every throw has ended; MJX always runs the full horizon.
-    t_run = int(np.asarray(tr.valid).any(0).sum()) if backend == "c" else cfg.horizon
+    # A host backend stops once every throw has ended; a traceable one runs the full horizon.
+    t_run = cfg.horizon if be.kind.traceable else int(np.asarray(tr.valid).any(0).sum())
     steps = batch * t_run * cfg.substeps
     best = min(times)
     return {"backend": backend, "batch": batch, "compile_s": max(first - best, 0.0),
@@ -63,9 +62,10 @@ def task_rate(cfg: World, backend: str, batch: int, repeats: int = 2, nthread: i
 
 def bench(cfg: World, backend: str, batch: int, nthread: int | None = None) -> dict:
     out = task_rate(cfg, backend, batch, nthread=nthread)
-    out["device"] = str(jax.devices()[0].device_kind) if backend == "mjx" else f"cpu x{nthread or os.cpu_count()}"
+    kind = backends.backend_kind(backend)
+    out["device"] = kind.device(nthread)
     out["mujoco"] = mujoco.__version__
-    if backend == "c":
+    if not kind.traceable:          # MuJoCo C: against mujoco.rollout alone
         out["rollout_baseline_steps_per_s"] = raw_rollout_rate(cfg, batch, nthread)
         out["fraction_of_baseline"] = out["physics_steps_per_s"] / out["rollout_baseline_steps_per_s"]
     return out

@@ -230,7 +230,7 @@ def collect(cfg: World, source: str, n: int, seed: int, backend: str = "c", chun
     be = backends.Backend(cfg, backend)
     # MJX wants large batches (thousands of throws in flight); the C backend smaller chunks
     # so progress shows and memory stays small.
-    chunk = chunk or (16384 if backend == "mjx" else 500)
+    chunk = chunk or be.kind.demo_chunk
     key = jax.random.PRNGKey(seed)
     parts = []
     bar = _bar(n, progress)

@@ -8,6 +8,7 @@
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 import jax
@@ -19,20 +20,43 @@ from ttmjx.world import ballphysics, env, observation, scene, timing
 from ttmjx.world.config import World
 from ttmjx.world.record import Trajectories
 
-BACKENDS = ("c", "mjx")
+@dataclasses.dataclass(frozen=True)
+class BackendKind:
+    """What a physics backend is and can do: the one place that tells the backends apart."""
+    name: str
+    about: str
+    traceable: bool       # its rollouts are pure JAX: jitted and vmapped whole (rounds, seeds)
+    demo_chunk: int       # throws per demonstration batch (large for latency-bound devices)
+
+    def device(self, nthread: int | None = None) -> str:
+        """The device it computes on, for reports."""
+        return str(jax.devices()[0].device_kind) if self.traceable else f"cpu x{nthread or os.cpu_count()}"
+
+
+REGISTRY = {
+    "c": BackendKind("c", "MuJoCo C (mujoco.rollout) on the host's threads", traceable=False, demo_chunk=500),
+    "mjx": BackendKind("mjx", "MJX (JAX) on the default device", traceable=True, demo_chunk=16384),
+}
+BACKENDS = tuple(REGISTRY)
 
 
 def on_accelerator() -> bool:
     return jax.default_backend() in ("gpu", "cuda", "rocm", "tpu")
 
 
-def resolve_backend(name: str) -> str:
-    """'auto' -> MJX on an accelerator, MuJoCo C on a CPU (where MJX is ~200x slower)."""
+def backend_kind(name: str) -> BackendKind:
+    """The registry's entry of a backend name ('auto': MJX on an accelerator, MuJoCo C on a CPU,
+    where MJX is ~200x slower); ValueError naming the choices otherwise."""
     if name == "auto":
-        return "mjx" if on_accelerator() else "c"
-    if name not in BACKENDS:
+        name = "mjx" if on_accelerator() else "c"
+    if name not in REGISTRY:
         raise ValueError(f"unknown backend {name!r}; expected 'auto' or one of {BACKENDS}")
-    return name
+    return REGISTRY[name]
+
+
+def resolve_backend(name: str) -> str:
+    """'auto' -> the backend for this machine's device; a known name -> itself."""
+    return backend_kind(name).name
 
 
 Policy = env.Policy
@@ -169,10 +193,11 @@ class Backend:
     """reset/step/rollout for a batch of throws on one physics backend."""
 
     def __init__(self, cfg: World, name: str = "c", nthread: int | None = None):
-        if name not in BACKENDS:
+        if name == "auto" or name not in REGISTRY:
             raise ValueError(f"unknown backend {name!r}; expected one of {BACKENDS}")
+        self.kind = REGISTRY[name]
         self.cfg, self.name = cfg, name
-        self.physics = MjxPhysics(cfg) if name == "mjx" else CPhysics(cfg, nthread)
+        self.physics = MjxPhysics(cfg) if self.kind.traceable else CPhysics(cfg, nthread)
         self.lay = self.physics.lay
         cfg_, lay = cfg, self.lay
         self._reset = jax.jit(jax.vmap(functools.partial(env.reset, cfg_, lay)))
@@ -203,7 +228,7 @@ class Backend:
         """One control step of physics for the batch -> (qpos, qvel, ball, paddle, joints, cmds)."""
         # Ideal timing ramps inside the physics step (no command history to keep).
         ctrl, cmds = (None, states.cmds) if self.cfg.timing.ideal else self._controls(states, target)
-        if self.name == "mjx":
+        if self.kind.traceable:
             if ctrl is None:
                 out = jax.vmap(self.physics.step)(states.qpos, states.qvel, states.target, target)
             else:
@@ -228,7 +253,7 @@ class Backend:
         if members and b % members:
             raise ValueError(f"{b} throws cannot be split evenly over {members} ensemble members")
         t_max = horizon or self.cfg.horizon
-        if self.name == "mjx":
+        if self.kind.traceable:
             key_ = ("mjx", policy, t_max, members)
             if key_ not in self._rollouts:
                 self._rollouts[key_] = jax.jit(self.rollout_fn(policy, t_max, members))
@@ -245,7 +270,7 @@ class Backend:
         s, b = np.shape(goals)[:2]
         if members and b % members:
             raise ValueError(f"{b} throws cannot be split evenly over {members} ensemble members")
-        if self.name == "mjx":
+        if self.kind.traceable:
             key_ = ("mjx-seeds", policy, self.cfg.horizon, members)
             if key_ not in self._rollouts:
                 self._rollouts[key_] = jax.jit(jax.vmap(self.rollout_fn(policy, self.cfg.horizon, members)))
@@ -323,8 +348,8 @@ class Backend:
     def rollout_fn(self, policy: Policy, t_max: int | None = None, members: int | None = None):
         """MJX only: a pure, jittable `(params, key, throws, goals [B, 2]) -> Trajectories`
         (no input validation: for use inside larger jit-compiled functions)."""
-        if self.name != "mjx":
-            raise ValueError("rollout_fn needs the mjx backend; the C backend steps on the host")
+        if not self.kind.traceable:
+            raise ValueError(f"rollout_fn needs a traceable backend (mjx); {self.name} steps on the host")
         t_max = t_max or self.cfg.horizon
         init_b, _ = batched_policy(policy, members)
         act = self._act_fn(policy, members)
