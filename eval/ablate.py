@@ -27,7 +27,7 @@ import typing
 from typing import Any, Callable, Literal, NamedTuple
 
 from eval import cells as cellrun
-from eval import tables as report
+from eval import tables
 from training import runconfig
 from training.runconfig import RunConfig
 from training.trainer import practice_iterations, pretrain_iterations
@@ -220,14 +220,19 @@ def _indices(name: str, order: list, item: str) -> range | list[int]:
                      f"variant of {name} ({', '.join(variants)})")
 
 
+def cell_base(base: RunConfig, seed: int, run_dir: str, trajectories: int | None = None) -> RunConfig:
+    """A scale's base configuration for one table cell: its seed, its run directory and, if
+    given, its trajectory budget (ablations and baselines alike)."""
+    if trajectories is not None:
+        base = dataclasses.replace(base, total_trajectories=trajectories)
+    return dataclasses.replace(base, seed=seed, run_dir=run_dir)
+
+
 def variant_config(name: str, variant: str, scale: str, seed: int, run_dir: str,
                    trajectories: int | None = None) -> RunConfig:
     """The resolved configuration of one cell; ValueError naming the variant if it is invalid."""
     ab = ABLATIONS[name]
-    base = SCALES[scale].base(ab.setting)
-    if trajectories is not None:
-        base = dataclasses.replace(base, total_trajectories=trajectories)
-    base = dataclasses.replace(base, seed=seed, run_dir=run_dir)
+    base = cell_base(SCALES[scale].base(ab.setting), seed, run_dir, trajectories)
     try:
         cfg = apply(base, ab.variants[variant])
         check_choices(cfg)
@@ -308,4 +313,4 @@ def build_report(name: str, scale: str, out: str, command: str = "") -> dict:
                           f"(the same goals and throws for every cell).",
               "variants_overrides": {v: {k: repr(x) if isinstance(x, Derived) else x for k, x in o.items()}
                                      for v, o in ab.variants.items()}}
-    return report.write_report(out, results, list(ab.variants), header, ab.x)
+    return tables.write_report(out, results, list(ab.variants), header, ab.x)

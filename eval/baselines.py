@@ -78,10 +78,7 @@ def method_config(method: str, scale: str, seed: int, run_dir: str, trajectories
     (agents.schedule). `rl`: brax settings replacing the scale's ({'ppo': PPOConfig(...)})."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {METHODS}")
-    base = goalseye_base(scale)
-    if trajectories is not None:
-        base = dataclasses.replace(base, total_trajectories=trajectories)
-    base = dataclasses.replace(base, seed=seed, run_dir=run_dir)
+    base = ablate.cell_base(goalseye_base(scale), seed, run_dir, trajectories)
     try:
         if method in RL:
             run = agents.run_config(method, base)
