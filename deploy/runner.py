@@ -80,8 +80,8 @@ class RunnerConfig:
     max_extrapolate_s: float | None = None
     # Homing after an episode takes the joints as settled only from samples stamped this long
     # after the episode's last command: the command delay and the servos' lag (a robot still
-    # catching up with its last command is not a robot moved by hand; issue #23: with 5 ms more
-    # command delay every session ended in a false joint_mismatch HOLD).
+    # catching up with its last command is not a robot moved by hand: without the wait, a few ms
+    # of extra command delay end a session in a false joint_mismatch HOLD).
     command_settle_s: float = 0.1
 
     def __post_init__(self):

@@ -6,7 +6,7 @@ drew from (`Timing.trained_ranges`: the sensor rates, [lowest, highest] of each 
 the command delay, the largest jitter and drop probability) and the SHA-256 of both, so the
 record is hashed like the rest of the contract (and, with contract.json, by the manifest).
 
-`trained_timing(doc)` reads it back; an export without it (exported before issue #23) is an
+`trained_timing(doc)` reads it back; an export without it (an export older than the record) is an
 ExportError: its timing is unknown, export the checkpoint again. `station_timing(record, name)`
 is the timing a station plays by default: the trained model without its randomization (its
 centre), or a named profile (ttmjx.world.config.TIMING_PROFILES). `outside_trained(record, t)`

@@ -163,8 +163,8 @@ ABLATIONS: dict[str, Ablation] = {
         "observation (13 values: positions; 16: with ball velocity) and network (frame stack or LSTM)", "sim",
         {f"{kind}-{n}": {"policy.kind": kind, "policy.obs_size": n, "world.ball_velocity_obs": n == 16}
          for kind in ("framestack", "lstm") for n in (13, 16)}),
-    # Item 1 of issue #11: the bootstrap demonstrators (issue 22: `paper` is the paper's
-    # procedure, built for narrow throws only; `striker` the narrow striker called `paper` before).
+    # The bootstrap demonstrators: `paper` is the paper's procedure, built for narrow throws
+    # only; `striker` the narrow scripted striker.
     "bootstrap": Ablation(
         "bootstrap demonstrator (paper: ES, shift, expand, 4 joints perturbed; striker: narrow scripted returner; "
         "es; oracle: goal-directed)", "sim",

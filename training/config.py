@@ -35,11 +35,11 @@ class TrainConfig:
     # Which practice episodes join the cache: "hits", every hit ball with a landing (paper,
     # "Continuous improvement through self-supervised practice": an episode "is processed and
     # filtered out if ... the ball was not hit"); "near_half", only hits landing within
-    # goal_margin of the opponent's half (this project's filter before issue #11).
+    # goal_margin of the opponent's half (this project's earlier filter).
     practice_keep: Literal[PRACTICE_KEEP] = "hits"
     action_noise: float = 0.0            # b of the per-episode uniform action noise
     # How it is applied (models.policy): "offset", a calibration offset the policy cannot see;
-    # "integrating", the withdrawn a + z that the closed loop integrates (issue #11).
+    # "integrating", the withdrawn a + z that the closed loop integrates.
     action_noise_form: Literal[NOISE_FORMS] = "offset"
     # The acting policy is an exponential moving average of the trained weights with this
     # decay per update (0: the weights themselves).

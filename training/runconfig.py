@@ -27,7 +27,7 @@ class RunConfig:
     """Bootstrap demonstrator (ttmjx demos --source; ttmjx/tools/demos.py): paper (the paper's
     procedure: ES, then imitation and practice shifting and expanding its landings; 4 joints
     perturbed), striker (a narrow scripted striker aimed at one point, 4 joints perturbed; named
-    `paper` before issue 22), es (the ES policy, the same perturbation) or oracle (the
+    `paper` in datasets without a source_version), es (the ES policy, the same perturbation) or oracle (the
     goal-directed striker: an upper bound, not the paper's setting)."""
     demo_dir: str | None = None
     """Use this dataset (ttmjx demos --out) instead of collecting demonstrations."""
@@ -142,7 +142,7 @@ def paper_sim() -> RunConfig:
         # A rollout on MJX is latency-bound (1,000 episodes take 4.1 s on an H100, about as long as
         # 4,000), so rounds are large: 4,000 episodes then 200 updates, the paper's ratio of
         # updates to trajectories kept from our earlier S=50, M=1000.
-        # The striker (the `paper` source before issue 22): the shipped `paper` bootstrap is built
+        # The striker: the shipped `paper` bootstrap is built
         # for narrow throws only (ttmjx demos --source paper --rebuild all --distribution any).
         demos=3600, demo_source="striker", pretrain_steps=2000, steps_between_ssp=200, episodes_per_ssp=4000,
         total_trajectories=120_000, eval_every=8000, checkpoint_every=5, run_dir="runs/paper-sim")
@@ -214,7 +214,7 @@ def from_json(d: dict) -> RunConfig:
     d["policy"] = PolicyConfig(**d["policy"])
     d["train"] = TrainConfig(**d["train"])
     d["data"] = tuple(d.get("data", ()))
-    # Configurations saved before issue 11 say "scripted": the goal-directed striker, now "oracle".
+    # Older configurations say "scripted": the goal-directed striker, now "oracle".
     from ttmjx.tools.demos import LEGACY
     if "demo_source" in d:
         d["demo_source"] = LEGACY.get(d["demo_source"], d["demo_source"])

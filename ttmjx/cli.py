@@ -179,7 +179,7 @@ class DemosArgs(WorldArgs):
     """Demonstrator: paper (the paper's bootstrap procedure: ES until it returns balls, its
     rollouts with 4 joints perturbed, imitation and practice with goals shifted up the table, then
     over the whole half; a gather with the shipped weights), striker (a narrow scripted striker
-    aimed at one point, 4 joints perturbed: `paper` before issue 22), es (the ES policy, same
+    aimed at one point, 4 joints perturbed: `paper` in datasets without a source_version), es (the ES policy, same
     perturbation), oracle (the goal-directed striker: an UPPER BOUND, not the paper's setting;
     'scripted' is its old name)."""
     n: int = 1000

@@ -19,9 +19,8 @@ Configuration choices (the rest are brax's defaults):
   (PPO asked for 120,000 trajectories ran 143,360), so `schedule` chooses brax's num_timesteps
   and num_evals such that brax's own arithmetic (`brax_env_steps`, a copy of it) runs exactly N
   trajectories in epochs of equal length, and a budget that no whole number of the method's
-  batches fills is refused with the nearest budgets that are (issue #25; before, 20,000 silently
-  became 16,384). The GPU settings make Table I's 120,000 exact for every method: PPO's batch is
-  4,000 episodes (4,000 environments x 160 steps), ES's 2 x 1,000;
+  batches fills is refused with the nearest budgets that are. The GPU settings make Table I's
+  120,000 exact for every method: PPO's batch is 4,000 episodes (4,000 environments x 160 steps), ES's 2 x 1,000;
 * PPO: brax's own evaluator is off (`run_evals=False`): the strict-metric curve below replaces it,
   and it cost a sequential episode per point;
 * learning-curve points: PPO hands its policy to policy_params_fn at every epoch; SAC and ES

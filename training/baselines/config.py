@@ -56,8 +56,7 @@ class PPOConfig:
     num_minibatches * batch_size / num_envs = 8 unrolls of 20 steps of every environment: exactly
     one 160-step episode of each of the 4,000 environments, 4,000 trajectories, so every batch
     holds every phase of the throw and any multiple of 4,000 trajectories (120,000 included) is
-    run exactly. (Before issue #25: 4,096 environments and batches of 1,024, 4,096 trajectories
-    per step; 120,000 was not a whole number of them.)"""
+    run exactly."""
     num_envs: int = 4000
     unroll_length: int = 20
     batch_size: int = 1000
@@ -106,7 +105,7 @@ class SACConfig:
 @dataclasses.dataclass(frozen=True)
 class ESConfig:
     """brax.training.agents.es.train arguments (2 * population_size episodes per update: 2,000, so
-    120,000 trajectories are 60 updates exactly; 1,024 before issue #25)."""
+    120,000 trajectories are 60 updates exactly)."""
     population_size: int = 1000
     perturbation_std: float = 0.02
     learning_rate: float = 0.01

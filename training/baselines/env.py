@@ -1,4 +1,4 @@
-"""GoalsEye's task for one throw as a brax environment, for brax's own RL trainers (issue #12).
+"""GoalsEye's task for one throw as a brax environment, for brax's own RL trainers.
 
 The same world as GoalsEye's practice: MJX physics (ttmjx.world.backends.MjxPhysics), the
 world's command clipping, events and observation (ttmjx.world.env), the world's throws
@@ -29,7 +29,7 @@ world's command clipping, events and observation (ttmjx.world.env), the world's 
 Brax's AutoResetWrapper restarts a finished episode from the SAME first state (throw and goal)
 forever; `wrap_fresh` is brax's training wrapper with a fresh reset (new throw, new goal) instead.
 
-Throws are solved ahead, `pool` per environment at a time (issue #25): solving a throw is a
+Throws are solved ahead, `pool` per environment at a time: solving a throw is a
 Newton solve over simulated flights, thousands of sequential tiny steps whose latency on a GPU
 does not depend on how many throws are solved together, and it used to run at every episode
 end (inside the training step, once per `horizon` steps) and twice per ES epoch or evaluation

@@ -12,8 +12,8 @@ Sources (`SOURCES`, `ttmjx demos --source`, `RunConfig.demo_source`):
   --rebuild stages|all` builds the procedure again.
 - `striker`: the scripted striker (ttmjx/tools/striker.py) aimed at ONE fixed point,
   `paper_target`, with the same perturbation: a nearly deterministic model-based returner.
-  Called `paper` before issue 22 (datasets whose metadata says `paper` without
-  `source_version` 2 are striker datasets: `dataset_source`).
+  Datasets whose metadata says `paper` without `source_version` 2 are striker datasets
+  (`dataset_source`): the striker was called `paper` then.
 - `es`: the ES policy alone (ttmjx/tools/es.py, shipped weights) with the same perturbation:
   the paper procedure's narrow first stage.
 - `oracle`: the goal-directed striker aiming every return at a random target of the half. Its
@@ -39,8 +39,8 @@ from ttmjx.world import backends, observation, record, thrower
 from ttmjx.world.config import JOINT_NAMES, World, opponent_half
 
 SOURCES = ("paper", "striker", "es", "oracle")
-# Old names of sources (datasets, config.json, scripts). `paper` meant the striker source until
-# issue 22 and is now the paper's procedure: the name stays valid, so it is not mapped here; a
+# Old names of sources (datasets, config.json, scripts). `paper` meant the striker source in
+# datasets without a source_version and is now the paper's procedure: the name stays valid, so it is not mapped here; a
 # DATASET from before says so by lacking `source_version` (`dataset_source`), and a run's
 # config.json from before keeps its collected demonstrations in its run directory (a resumed
 # run does not collect again).
@@ -52,8 +52,8 @@ COVER_RADIUS = 0.3      # m: the paper's looser success radius; "area within 30 
 
 
 def dataset_source(meta: dict) -> str:
-    """The current name of the source a dataset's metadata records: `paper` written before
-    issue 22 (no `source_version`) is today's `striker`."""
+    """The current name of the source a dataset's metadata records: `paper` written without
+    a `source_version` is today's `striker`."""
     source = meta.get("source", "?")
     if source == "paper" and meta.get("source_version", 1) < SOURCE_VERSION:
         return "striker"

@@ -107,7 +107,7 @@ class Reward(NamedTuple):
     aim: tuple = (0.685, 0.0)   # m, table frame: the centre of the opponent's half
 
 
-# Phase 1 (contact): the reward of the first shipped weights (issue 11). Its optimum in reach was
+# Phase 1 (contact): the reward of the first shipped weights. Its optimum in reach was
 # a block: the blade in the ball's path, 98% hit, 0% returned (the ball falls back on the robot's
 # half): the return bonus is a cliff that no candidate near a block reaches.
 CONTACT = Reward()

@@ -4,7 +4,7 @@ It plays two demonstration sources (ttmjx/tools/demos.py), neither of them the p
 procedure (that is the `paper` source, training/bootstrap_paper.py): `oracle`, which returns
 every ball toward a RANDOM point of the opponent's half drawn per episode (its landings are its
 targets: imitating it is nearly goal reaching, an upper bound), and `striker` (called `paper`
-before issue 22), aimed at one fixed point with 4 joints perturbed. It hits the thrown ball
+in datasets without a source_version), aimed at one fixed point with 4 joints perturbed. It hits the thrown ball
 after its bounce; the commanded goal in the observation is ignored. Every control step (`striker_step`) runs four stages:
 
 1. predict the ball (`track_ball`, `predict_hit`): its own-half bounce, and its spin, estimated

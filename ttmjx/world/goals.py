@@ -1,7 +1,7 @@
 """Goals and how reaching them is scored: the one uniform goal sampler, the five-goal protocol
 and the one goal-metrics function, used by practice, evaluation and the robot runner alike.
 
-Success is strict (issue #11): the ball was hit, its first bounce after the hit was on the
+Success is strict: the ball was hit, its first bounce after the hit was on the
 opponent's half, and that bounce is within 30 (20) cm of the goal (`scored_distance`).
 
 Goals and landings are (x, y) on the table top in the table frame (ttmjx.world.config): the
