@@ -8,8 +8,9 @@ record is hashed like the rest of the contract (and, with contract.json, by the 
 
 `trained_timing(doc)` reads it back; an export without it (an export older than the record) is an
 ExportError: its timing is unknown, export the checkpoint again. `station_timing(record, name)`
-is the timing a station plays by default: the trained model without its randomization (its
-centre), or a named profile (ttmjx.world.config.TIMING_PROFILES). `outside_trained(record, t)`
+is the timing a station plays: by default the trained model itself (a simulated station draws
+each throw's delays within its ranges), `centre` without its randomization, or a named profile
+(ttmjx.world.config.TIMING_PROFILES). `outside_trained(record, t)`
 lists every way a station's timing falls outside what the policy saw; `ttmjx robot run`,
 `robot serve` and `robot sweep` refuse such a station unless told to play it anyway, and then
 every summary says so (`timing_summary`).
@@ -49,7 +50,7 @@ def timing_record(timing: Timing) -> dict:
     model, ranges = to_dict(timing), timing.trained_ranges()
     return {"model": model, "ranges": ranges, "ideal": bool(timing.ideal),
             "randomized_per_episode": max(timing.spreads()) > 0,
-            "station_default": to_dict(timing.centre()),
+            "centre": to_dict(timing.centre()),
             "meaning": ("the policy was trained under `model` (ttmjx.world.config.Timing), each episode "
                         "drawing its latencies and command delay within `ranges` (s; rates in Hz, "
                         "null: every physics step); a station outside them is refused by default"),
