@@ -29,14 +29,20 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import dataclasses
 import gc
 import heapq
 import json
 import math
+import os
 import select
+import signal
 import socket
 import socketserver
+import subprocess
+import sys
+import tempfile
 import threading
 import time
 
@@ -480,3 +486,30 @@ def serve(cell: CellConfig, station, faults: Faults, egm_hz: float = EGM_HZ, see
             launcher.shutdown()
         modbus_thread.join(timeout=5)
     return app.stats()
+
+
+@contextlib.contextmanager
+def serving(config_path: str, *args: str, cpu: int | None = None, env: dict | None = None):
+    """`ttmjx robot serve --config config_path --json *args` in a subprocess (pinned to core
+    `cpu` if given) for the block, once it is ready; stopped as Ctrl-C stops it (killed if it
+    does not end within 20 s). Yields the process."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {**os.environ, "PYTHONPATH": root, **(env or {})}
+    err = tempfile.TemporaryFile("w+")        # not a pipe: a long session's log would fill it
+    proc = subprocess.Popen([sys.executable, "-m", "ttmjx.cli", "robot", "serve", "--config", str(config_path),
+                             "--json", *args], stdout=subprocess.PIPE, stderr=err, env=env, text=True,
+                            preexec_fn=None if cpu is None else lambda: os.sched_setaffinity(0, {cpu}))
+    try:
+        line = proc.stdout.readline()           # the server's ready line (it prints nothing else
+        if '"ready": true' not in line:         # until it stops)
+            proc.wait(timeout=20)
+            err.seek(0)
+            raise ValueError(f"ttmjx robot serve did not start: {line.strip()} {err.read()[-2000:]}")
+        yield proc
+    finally:
+        err.close()
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()

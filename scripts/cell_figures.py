@@ -88,7 +88,8 @@ def transport_delays(out_dir: str, n: int, arrivals: list, tol=(1e-6, 2e-6)) -> 
 
 def over_sockets(policy: str, goals, seed: int, faults: str, egm_hz: float, timing: str,
                  tmp: str, server_cpu: int | None = None) -> dict:
-    from deploy.drivers.cell import Launcher, run_cell, serving
+    from deploy.drivers.cell import Launcher, run_cell
+    from deploy.serve import serving
     cfg = cellconfig.loopback_config()
     path = os.path.join(tmp, "cell.toml")
     with open(path, "w") as f:

@@ -12,7 +12,7 @@ pytest.importorskip("abb_robot_client")
 pytest.importorskip("pymodbus")
 
 from deploy.drivers import config as cellconfig          # noqa: E402
-from deploy.drivers.cell import serving                  # noqa: E402
+from deploy.serve import serving                  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RUN = os.path.join(ROOT, "tests", "data", "tiny_run_v0")

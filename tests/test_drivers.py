@@ -22,7 +22,8 @@ pytest.importorskip("pymodbus")
 
 from deploy.contract import Contract                                   # noqa: E402
 from deploy.drivers import config as cellconfig                        # noqa: E402
-from deploy.drivers.cell import Launcher, run_cell, serving            # noqa: E402
+from deploy.drivers.cell import Launcher, run_cell
+from deploy.serve import serving            # noqa: E402
 from deploy.drivers.tracker import WIRE, pack_sample, unpack_sample    # noqa: E402
 from deploy.episode_log import load_episode                            # noqa: E402
 from deploy.fakes import FollowBallPolicy                              # noqa: E402

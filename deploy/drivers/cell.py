@@ -16,15 +16,11 @@ a gantry reading later than stale_s minus one poll period (90 ms by default) alr
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import os
-import signal
 import socket
-import subprocess
 import sys
-import tempfile
 import time
 
 import numpy as np
@@ -226,7 +222,7 @@ class _Session:
         if self.cell.launcher is None:
             return ep
         events = self.cell.launcher.call("finish", max_s=self.finish_s)["events"]
-        from deploy.station import complete_episode
+        from deploy.outcomes import complete_episode
         ep = complete_episode(ep, _throw_events(events), self.runner.contract)
         return Episode(ep.traj, ep.extras, {**ep.meta, "station": "cell"})
 
@@ -242,17 +238,17 @@ class _Session:
                           "errors": self.cell.gantry.errors},
                "tracker": {"received": self.cell.tracker.received, "dropped": self.cell.tracker.dropped}}
         if self.cell.launcher is not None:
-            from deploy.station import goal_summary, latency_ms
+            from deploy.outcomes import goal_summary, latency_ms
             out["metrics"] = goal_summary(episodes)
             out["latency_ms"] = latency_ms(episodes)
         return out
 
 
 def _throw_events(d: dict | None):
-    """deploy.station.ThrowEvents from the referee's JSON (None values are NaN)."""
+    """deploy.outcomes.ThrowEvents from the referee's JSON (None values are NaN)."""
     if d is None:
         return None
-    from deploy.station import ThrowEvents
+    from deploy.outcomes import ThrowEvents
     kw = {}
     for f in dataclasses.fields(ThrowEvents):
         v = d[f.name]
@@ -262,30 +258,3 @@ def _throw_events(d: dict | None):
             v = float("nan")
         kw[f.name] = v
     return ThrowEvents(**kw)
-
-
-@contextlib.contextmanager
-def serving(config_path: str, *args: str, cpu: int | None = None, env: dict | None = None):
-    """`ttmjx robot serve --config config_path --json *args` in a subprocess (pinned to core
-    `cpu` if given) for the block, once it is ready; stopped as Ctrl-C stops it (killed if it
-    does not end within 20 s). Yields the process."""
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    env = {**os.environ, "PYTHONPATH": root, **(env or {})}
-    err = tempfile.TemporaryFile("w+")        # not a pipe: a long session's log would fill it
-    proc = subprocess.Popen([sys.executable, "-m", "ttmjx.cli", "robot", "serve", "--config", str(config_path),
-                             "--json", *args], stdout=subprocess.PIPE, stderr=err, env=env, text=True,
-                            preexec_fn=None if cpu is None else lambda: os.sched_setaffinity(0, {cpu}))
-    try:
-        line = proc.stdout.readline()           # the server's ready line (it prints nothing else
-        if '"ready": true' not in line:         # until it stops)
-            proc.wait(timeout=20)
-            err.seek(0)
-            raise ValueError(f"ttmjx robot serve did not start: {line.strip()} {err.read()[-2000:]}")
-        yield proc
-    finally:
-        err.close()
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
