@@ -77,6 +77,17 @@ def cpu_identity() -> dict | None:
     return {"model": model, "vector_flags": sorted(flags & set(VECTOR_FLAGS))}
 
 
+def on_a_recording_processor() -> bool:
+    """Whether this machine's processor is one a recording was made on (RECORDED_ON)."""
+    here = cpu_identity()
+    return here is not None and any(cpu == here for cpu in RECORDED_ON.values())
+
+
+# An evaluation's mean landing distance across processors: iteration 1's eval_mean_dist of the
+# two recordings lie 6.9% apart (above); a bound 1.5x that.
+CROSS_CPU_EVAL_DIST_REL = 0.1
+
+
 def same_rows(got: list[dict], want: list[dict]) -> str | None:
     """None if the rows agree (counts exactly, floats to SAME_REL), else the first difference."""
     if [r["iteration"] for r in got] != [r["iteration"] for r in want]:
