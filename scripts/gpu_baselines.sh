@@ -5,6 +5,9 @@
 # Profiles the environment pieces (scripts/baseline_profile.py, at most PROFILE_S seconds; 0
 # skips it), then runs `ttmjx baseline METHOD --scale full --seeds SEEDS --out B/table1` for
 # each, each under its own limit (SIGTERM: finished cells are kept, a cut one is redone).
+# PARALLEL=1 runs the methods side by side (one process each) instead of one after another;
+# PPO_FLAGS, SAC_FLAGS, ES_FLAGS add options to that method's command (e.g.
+# PPO_FLAGS="--ppo.num-envs 12000 --ppo.num-minibatches 96").
 # Writes $OUT/log.txt (everything printed), $OUT/profile.json and $OUT/baselines.tgz (results,
 # timing.json per cell, table, curves; no checkpoints), refreshed every 20 s in the background,
 # and $OUT/jax_cache.tgz, JAX's persistent compilation cache of this call when it packs under
@@ -26,13 +29,19 @@ if [[ $PROFILE_S -gt 0 ]]; then
   echo "=== profile $(date +%T)" | tee -a "$OUT/log.txt"
   timeout "$PROFILE_S" python3 scripts/baseline_profile.py 2>>"$OUT/log.txt" | tee "$OUT/profile.json"
 fi
-for spec in "$@"; do
-  IFS=: read -r m s lim <<<"$spec"
-  echo "=== baseline $m seeds $s limit $lim $(date +%T)" | tee -a "$OUT/log.txt"
+one() {
+  IFS=: read -r m s lim <<<"$1"
+  local flags_var="${m^^}_FLAGS"; local flags=${!flags_var:-}
+  echo "=== baseline $m seeds $s limit $lim $flags $(date +%T)" | tee -a "$OUT/log.txt"
   /usr/bin/time -f "wall %e s, peak rss %M kB" timeout -s TERM "$lim" \
-    python3 -m ttmjx.cli baseline "$m" --scale full --seeds "$s" --out "$B/table1" 2>&1 \
-    | tr '\r' '\n' | grep -v "^\s*$" | tee -a "$OUT/log.txt" | grep -E "^\[|wall|error" | tail -20
+    python3 -m ttmjx.cli baseline "$m" --scale full --seeds "$s" --out "$B/table1" $flags 2>&1 \
+    | tr '\r' '\n' | grep -v "^\s*$" | tee -a "$OUT/log.txt" "$OUT/log_$m.txt" | grep -E "^\[|wall|error" | tail -20
+}
+pids=()
+for spec in "$@"; do
+  if [[ ${PARALLEL:-0} == 1 ]]; then one "$spec" & pids+=($!); else one "$spec"; fi
 done
+for p in "${pids[@]}"; do wait "$p"; done
 kill $PACKER 2>/dev/null; pack
 python3 - "$B" <<'PY' | tee -a "$OUT/log.txt"
 import glob, json, os, sys
