@@ -19,13 +19,16 @@ Raw streams, everything received during the episode (accepted or not):
 """
 from __future__ import annotations
 
+import contextlib
+import json
 import os
+import re
 from typing import NamedTuple
 
 import numpy as np
 
 from deploy.contract import REAL_OBS_SIZE
-from ttmjx.world import observation, record
+from ttmjx.world import files, observation, record
 from ttmjx.world.record import Trajectories
 
 EXTRAS_SUFFIX = ".deploy.npz"
@@ -113,8 +116,17 @@ class EpisodeLog:
 
 
 def save_episode(directory: str, name: str, ep: Episode) -> str:
-    """Write the record (ttmjx.world.record.save) and the extras beside it; refuses to overwrite."""
+    """Write the record (ttmjx.world.record.save) and the extras beside it; refuses to overwrite.
+    In a session directory being resumed (`session`), an episode already logged is compared with
+    the one the session replays instead: equal, it is kept; different, a ValueError names it."""
     extras_path = os.path.join(directory, name + EXTRAS_SUFFIX)
+    resumed = _RESUMED.get(os.path.abspath(directory))
+    if resumed is not None:
+        if not os.path.exists(os.path.join(directory, PLAN_FILE)):
+            files.write_json(os.path.join(directory, PLAN_FILE), resumed)   # with the first episode
+        if episode_complete(directory, name):
+            same_episode(directory, name, ep)
+            return os.path.join(directory, name + ".npz")
     if os.path.exists(extras_path):
         raise FileExistsError(f"{extras_path} already exists; refusing to overwrite an episode log")
     path = record.save(directory, ep.traj, ep.meta, name=name)
@@ -133,3 +145,127 @@ def load_episode(directory: str, name: str) -> Episode:
     with np.load(extras_path, allow_pickle=False) as z:
         extras = {k: z[k] for k in z.files}
     return Episode(traj, extras, meta)
+
+
+# -- sessions: a directory of one session's episode logs, resumable --------------------------
+# A session directory holds PLAN_FILE (what the session is: the export's manifest hash, the
+# goals, the seed, the station and its timing), the episodes `episode_<i:04d>` as they end, and
+# SESSION_FILE (the summary) when the session is complete. The same command on a directory with
+# an unfinished session resumes it: on a reproducible station (simulated or fake time) the session
+# is played again from its start, each episode already logged compared with the replayed one and
+# kept, and the episodes after it logged, so the summary is the uninterrupted session's.
+PLAN_FILE = "session.plan.json"
+SESSION_FILE = "session.json"
+_EPISODE = re.compile(r"(episode_\d{4})(\.npz|\.meta\.json|\.deploy\.npz|\.npz\.tmp\.npz|\.deploy\.npz\.tmp\.npz|)$")
+_RESUMED: dict[str, dict] = {}      # absolute session directory -> its plan, while a session runs
+
+
+def episode_complete(directory: str, name: str) -> bool:
+    return all(os.path.exists(os.path.join(directory, name + ext)) for ext in (".npz", ".meta.json", EXTRAS_SUFFIX))
+
+
+def _arrays_equal(a, b) -> bool:
+    a, b = np.asarray(a), np.asarray(b)
+    return a.shape == b.shape and a.dtype == b.dtype and bool(np.all((a == b) | ((a != a) & (b != b))))
+
+
+def same_episode(directory: str, name: str, ep: Episode) -> None:
+    """ValueError naming the logged episode if the replayed `ep` differs from it."""
+    old = load_episode(directory, name)
+    new_traj = record.to_numpy(ep.traj)
+    diff = [f for f in new_traj._fields if not _arrays_equal(getattr(new_traj, f), getattr(old.traj, f))]
+    diff += [k for k in set(ep.extras) | set(old.extras)
+             if k not in ep.extras or k not in old.extras or not _arrays_equal(ep.extras[k], old.extras[k])]
+    meta = json.loads(json.dumps(files.json_safe(ep.meta)))
+    diff += [k for k in meta if old.meta.get(k) != meta[k]]
+    if diff:
+        raise ValueError(f"{os.path.join(directory, name)}: the resumed session replays this episode differently "
+                         f"({', '.join(sorted(diff)[:4])} differ); {directory} holds another session: choose a new --out")
+
+
+def describe(directory: str) -> str:
+    """What a directory that is not a robot session holds, in a few words."""
+    names = sorted(os.listdir(directory))
+    if "config.json" in names or "checkpoints" in names:
+        what = "a training run"
+    elif "manifest.json" in names:
+        what = "an export"
+    elif "trajectories.npz" in names:
+        what = "a dataset"
+    elif "results" in names or "runs" in names:
+        what = "an experiment table"
+    elif any(_EPISODE.match(n) for n in names):
+        what = f"episode logs without {PLAN_FILE} (another command's session)"
+    else:
+        what = "other files"
+    shown = ", ".join(n + ("/" if os.path.isdir(os.path.join(directory, n)) else "") for n in names[:4])
+    return f"{what} ({shown}{', ...' if len(names) > 4 else ''})"
+
+
+def session_state(directory: str | None, plan: dict) -> tuple[str, int]:
+    """('new' | 'resume' | 'finished', episodes logged) of a session directory for the session
+    `plan` (JSON values); ValueError naming the directory if it holds something else (another
+    session, a training run, an export, other files). Nothing is written."""
+    if directory is None or not os.path.exists(directory):
+        return "new", 0
+    if not os.path.isdir(directory):
+        raise ValueError(f"--out {directory!r} is a file; expected a new directory or one of this session's")
+    names = os.listdir(directory)
+    if not names:
+        return "new", 0
+    plan_path = os.path.join(directory, PLAN_FILE)
+    if not os.path.exists(plan_path):
+        raise ValueError(f"--out {directory!r} holds {describe(directory)}, not a session of this command; "
+                         f"choose a new or empty directory")
+    try:
+        with open(plan_path) as f:
+            saved = json.load(f)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{plan_path}: unreadable ({e}); delete {directory} or choose a new --out") from None
+    plan = json.loads(json.dumps(files.json_safe(plan)))
+    diff = sorted(k for k in set(saved) | set(plan) if saved.get(k) != plan.get(k))
+    if diff:
+        raise ValueError(f"--out {directory!r} holds another session (its {', '.join(diff)} differ from this "
+                         f"command's); choose a new --out")
+    foreign = [n for n in names if n not in (PLAN_FILE, SESSION_FILE) and not _EPISODE.match(n)
+               and not (n.startswith(".") and n.endswith(".tmp"))]
+    if foreign:
+        raise ValueError(f"--out {directory!r}: a session directory that also holds {', '.join(sorted(foreign)[:4])}; "
+                         f"move them away or choose a new --out")
+    logged = sorted({m.group(1) for m in map(_EPISODE.match, names) if m})
+    done = sum(episode_complete(directory, n) for n in logged)
+    if os.path.exists(os.path.join(directory, SESSION_FILE)):
+        return "finished", done
+    return "resume", done
+
+
+@contextlib.contextmanager
+def session(directory: str | None, plan: dict):
+    """The session in `directory` (None: no logs) while it runs: a new one writes `plan` with its
+    first episode; an unfinished one (session_state 'resume') has its torn episode files (a kill
+    mid-save) removed and its logged episodes compared, not rewritten, as they are replayed."""
+    if directory is None:
+        yield
+        return
+    state, _ = session_state(directory, plan)
+    key = os.path.abspath(directory)
+    if state == "resume":
+        for n in os.listdir(directory):
+            m = _EPISODE.match(n)
+            if (m and not episode_complete(directory, m.group(1))) or (n.startswith(".") and n.endswith(".tmp")):
+                os.remove(os.path.join(directory, n))
+    _RESUMED[key] = json.loads(json.dumps(files.json_safe(plan)))
+    try:
+        yield
+    finally:
+        _RESUMED.pop(key, None)
+
+
+def read_session(directory: str) -> dict:
+    """The summary of a finished session (SESSION_FILE)."""
+    path = os.path.join(directory, SESSION_FILE)
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: unreadable ({e}); delete it to play the session's last episodes again") from None

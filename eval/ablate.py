@@ -278,8 +278,7 @@ def run(name: str, scale: str, seeds: int, out: str, spec: str | None = None, tr
     batch = cellrun.goalseye_seeds if trainer is cellrun.goalseye else None
     stopped = cellrun.run_cells(cells, os.path.join(out, "results"), trainer, progress, f"ablate {name} {scale}",
                                 log=lambda m: log(m, file=sys.stderr), batch=batch)
-    summary = build_report(name, scale, out, command)
-    return {**summary, "cells_run": [c.name for c in cells], "stopped_by_signal": stopped}
+    return cellrun.finish(cells, out, stopped, lambda: build_report(name, scale, out, command))
 
 
 def load_results(out: str) -> list[dict]:

@@ -183,7 +183,7 @@ def run(methods: list[str], scale: str, seeds: int, out: str, trajectories: int 
     cells = plan(methods, scale, seeds, out, trajectories, reward, rl)
     stopped = cellrun.run_cells(cells, os.path.join(out, "results"), trainer, progress, f"baseline {scale}",
                                 log=lambda m: log(m, file=sys.stderr))
-    return {**build_report(scale, out, command), "cells_run": [c.name for c in cells], "stopped_by_signal": stopped}
+    return cellrun.finish(cells, out, stopped, lambda: build_report(scale, out, command))
 
 
 def build_report(scale: str, out: str, command: str = "") -> dict:

@@ -149,6 +149,19 @@ def run_cells(cells: list, results_dir: str, trainer: Trainer, progress: bool, t
     return 0
 
 
+def finish(cells: list, out: str, stopped: int, build_report: Callable[[], dict]) -> dict:
+    """The summary of a table command after run_cells: the report rebuilt from the finished
+    results (none yet after a signal that cut the first cell short: no report, not an error),
+    the cells run, the signal that stopped them (0: none) and, after one, the unfinished cells'
+    run directories (each resumes from its checkpoint when the same command runs again)."""
+    results_dir = os.path.join(out, "results")
+    finished = os.path.isdir(results_dir) and any(f.endswith(".json") for f in os.listdir(results_dir))
+    summary = build_report() if finished or not stopped else {"outputs": {}}
+    unfinished = [c.run_dir for c in cells if not os.path.exists(result_path(results_dir, c))]
+    return {**summary, "cells_run": [c.name for c in cells], "stopped_by_signal": stopped,
+            **({"unfinished": unfinished} if stopped else {})}
+
+
 def seed_groups(cells: list, results_dir: str) -> list[list]:
     """The cells in groups that one program can train (training.seeds.program_key): the
     unfinished seeds of each variant together, and of several variants where they differ only in

@@ -359,7 +359,6 @@ class ExportArgs(Report):
 class RobotRunArgs(Report):
     """Play an exported policy toward goals on a station and log the episodes."""
     BOUNDS: ClassVar[dict] = {"n": (1, 100_000), "stale_ms": (0.1, 10_000.0)}
-    NEW_DIRS: ClassVar[tuple] = ("out",)
     policy: str
     """An export directory (ttmjx export --out)."""
     station: Literal[STATIONS]
@@ -369,7 +368,8 @@ class RobotRunArgs(Report):
     n: int = 1
     """Attempts per goal ('uniform': the number of goals)."""
     out: str | None = None
-    """Directory for the episode logs (ttmjx train --data reads them); None: no logs."""
+    """Directory for the episode logs (ttmjx train --data reads them), new or empty; the same command
+    on it again resumes an unfinished session (or reports the finished one); None: no logs."""
     seed: int = 0
     """Seed of the throws (and of uniform goals)."""
     distribution: Literal[THROW_DISTRIBUTIONS] | None = None
@@ -643,10 +643,25 @@ def ablate(a: AblateArgs) -> None:
     else:
         summary = ablations.run(a.name, scale, a.seeds, out, a.cells, a.trajectories, progress=not a.json,
                                 command=command)
-    with open(summary["outputs"]["table"]) as f:
-        report(a, summary, f.read() + f"\nwrote {out}/ (table.md, curves.png, landings/, summary.json)")
-    if summary.get("stopped_by_signal"):
-        sys.exit(128 + summary["stopped_by_signal"])   # the shell's convention, as `ttmjx train`
+    table_report(a, "ablate", summary, out)
+
+
+def table_report(a: Report, name: str, summary: dict, out: str) -> None:
+    """The table (if any cell has finished) or its JSON; after a signal that cut a cell short
+    (its run saved a checkpoint first), one line naming the unfinished runs and exit 128 + signal."""
+    path = summary.get("outputs", {}).get("table")
+    if path:
+        with open(path) as f:
+            report(a, summary, f.read() + f"\nwrote {out}/ (table.md, curves.png, landings/, summary.json)")
+    elif a.json:
+        report(a, summary, "")
+    sig = summary.get("stopped_by_signal")
+    if sig:
+        import signal
+        runs = summary.get("unfinished", [])
+        saved = [r for r in runs if os.path.isdir(os.path.join(r, "checkpoints"))]
+        fail(name, f"stopped by {signal.Signals(sig).name}: {len(runs)} cell(s) unfinished; checkpoint saved in "
+                   f"{', '.join(saved) or 'none yet'}; run the same command to resume", code=128 + sig)
 
 
 def baseline(a: BaselineArgs) -> None:
@@ -662,10 +677,7 @@ def baseline(a: BaselineArgs) -> None:
         rl = {name: c for name, c in (("ppo", a.ppo), ("sac", a.sac), ("es", a.es)) if c != type(c)()}
         summary = baselines.run(methods, a.scale, a.seeds, out, a.trajectories, a.reward, progress=not a.json,
                                 command=command, rl=rl)
-    with open(summary["outputs"]["table"]) as f:
-        report(a, summary, f.read() + f"\nwrote {out}/ (table.md, curves.png, landings/, summary.json)")
-    if summary.get("stopped_by_signal"):
-        sys.exit(128 + summary["stopped_by_signal"])
+    table_report(a, "baseline", summary, out)
 
 
 def export(a: ExportArgs) -> None:
@@ -689,24 +701,20 @@ def export(a: ExportArgs) -> None:
 
 
 def robot_run(a: RobotRunArgs) -> None:
-    from deploy.cli import run_fake
     from deploy.goals import session_goals
     from deploy.runner import RunnerConfig
+    from deploy.cli import play
     goals = session_goals(a.goals, a.n, a.seed)
     config = RunnerConfig(stale_s=a.stale_ms / 1000.0)
     if a.station == "cell":
-        from deploy.cli import run_cell_station
         from deploy.export import read_contract
         from deploy.timing_check import trained_timing
         trained_timing(read_contract(a.policy), a.policy)   # an export without a timing record is refused
-        out = run_cell_station(a.policy, goals, a.config, a.out, config)
-    elif a.station == "sim":
-        from deploy.station import run_sim
-        out = run_sim(a.policy, goals, a.out, seed=a.seed, distribution=a.distribution,
-                      realtime=a.realtime, charge_compute=a.charge_compute, config=config, timing=a.timing,
-                      allow_untrained=a.allow_untrained_timing)
-    else:
-        out = run_fake(goals, a.out, a.policy, None, None, config, a.realtime)
+    # --out: a new directory, or this command's own session: resumed if unfinished (deploy/cli.py play)
+    out = play(a.station, a.policy, goals, a.out, config, seed=a.seed, distribution=a.distribution,
+               timing=a.timing, allow_untrained=a.allow_untrained_timing, realtime=a.realtime,
+               charge_compute=a.charge_compute, cell_config=a.config,
+               log=lambda m: print(f"ttmjx robot run: {m}", file=sys.stderr))
     m = out.get("metrics", {})
     from deploy.timing_check import timing_line
     tm = out.get("timing") or {}
@@ -900,15 +908,46 @@ def enable_compile_cache():
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
+class Stopped(BaseException):
+    """SIGTERM outside a training loop (whose own handler saves a checkpoint and stops it at the
+    end of the iteration, training/trainer.py): the command ends as after Ctrl-C, with 143."""
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+@contextlib.contextmanager
+def stop_on_sigterm():
+    """SIGTERM raises Stopped (a KeyboardInterrupt's counterpart) while the command runs, so it
+    unwinds like Ctrl-C: outputs written through a temporary name stay whole or absent, what was
+    saved (checkpoints, episode logs) stays, and main exits 143 with one line."""
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Stopped(signum)
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 def main(argv: list[str] | None = None) -> None:
     from training.mesh import initialize_distributed
     name, rest = command_of(sys.argv[1:] if argv is None else list(argv))
     cmd = COMMANDS[name]
     try:
-        initialize_distributed()   # several processes: before JAX's first computation (presets probe devices)
-        args = cmd.parse(rest) if cmd.parse else parse_args(name, cmd.args, rest)
-        enable_compile_cache()
-        cmd.run(args)
+        with stop_on_sigterm():
+            initialize_distributed()   # several processes: before JAX's first computation (presets probe devices)
+            args = cmd.parse(rest) if cmd.parse else parse_args(name, cmd.args, rest)
+            enable_compile_cache()
+            cmd.run(args)
+    except Stopped:
+        fail(name, "stopped by SIGTERM; what was saved is kept: run the same command to resume", code=143)
     except (ValueError, FileExistsError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as e:
         fail(name, str(e) if not isinstance(e, OSError) or not e.strerror else file_error(e))
     except OSError as e:          # permission denied, disk full: the environment, not the input
