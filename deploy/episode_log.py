@@ -129,10 +129,16 @@ def save_episode(directory: str, name: str, ep: Episode) -> str:
             return os.path.join(directory, name + ".npz")
     if os.path.exists(extras_path):
         raise FileExistsError(f"{extras_path} already exists; refusing to overwrite an episode log")
-    path = record.save(directory, ep.traj, ep.meta, name=name)
     tmp = extras_path + ".tmp.npz"
-    np.savez(tmp, **ep.extras)
-    os.replace(tmp, extras_path)
+    try:
+        path = record.save(directory, ep.traj, ep.meta, name=name)
+        np.savez(tmp, **ep.extras)
+        os.replace(tmp, extras_path)
+    except OSError as e:        # a full disk: numpy's writes name no file
+        if e.filename or e.errno is None:
+            raise
+        raise OSError(e.errno, f"{e.strerror} (logging episode {name}; the episodes before it are kept)",
+                      os.path.join(directory, name)) from None
     return path
 
 

@@ -83,12 +83,41 @@ def check_result_matches(path: str, cell: Cell) -> None:
                          f"delete it or choose another --out")
 
 
+TABLE_ENTRIES = ("runs", "results", "table.md", "curves.png", "landings", "summary.json")
+
+
+def check_table_dir(out: str) -> None:
+    """ValueError naming `out` and what it holds if it is neither new, empty nor a table's
+    directory (runs/, results/, the report): a training run, an export, a dataset or other files
+    would be mixed with (and mistaken for) the table's cells."""
+    if not os.path.isdir(out):
+        return
+    names = sorted(os.listdir(out))
+    foreign = [n for n in names if n not in TABLE_ENTRIES and not n.startswith(".")]
+    if not foreign:
+        return
+    if "config.json" in names or "checkpoints" in names:
+        what = "a training run"
+    elif "manifest.json" in names:
+        what = "an export"
+    elif "trajectories.npz" in names:
+        what = "a dataset"
+    elif "session.json" in names or any(n.startswith("episode_") for n in names):
+        what = "robot episode logs"
+    else:
+        what = "other files"
+    shown = ", ".join(n + ("/" if os.path.isdir(os.path.join(out, n)) else "") for n in foreign[:4])
+    raise ValueError(f"--out {out!r} holds {what} ({shown}{', ...' if len(foreign) > 4 else ''}), not a table's "
+                     f"runs/ and results/; choose a new or empty directory")
+
+
 def planned_cells(out: str, entries, make_config) -> list[Cell]:
     """The cells of an ablation or baseline table under `out`: one per (variant, seed) of
     entries, configured by make_config(variant, seed, run_dir); every finished result checked
     against the configuration asked for now (ValueError), before anything is written."""
     if os.path.isfile(out):
         raise ValueError(f"--out {out!r} is a file; expected a directory")
+    check_table_dir(out)
     chosen = []
     for variant, seed in entries:
         run_dir = os.path.join(out, "runs", f"{variant}-seed{seed}")

@@ -10,8 +10,14 @@ a run saved on 4 devices resumes on 1 and the other way round.
 """
 from __future__ import annotations
 
+import contextlib
+import errno
+import io
 import json
+import logging
 import os
+import re
+import shutil
 import sys
 from typing import Callable, NamedTuple
 
@@ -100,12 +106,80 @@ def save(directory: str, step: int, tree, config: dict, keep: int = 3) -> None:
     files; delete all but the newest `keep`. An existing step is an error."""
     if keep < 1:
         raise ValueError(f"checkpoint.save: keep={keep}, expected >= 1")
-    with _manager(directory, keep) as mngr:
-        mngr.save(int(step), args=ocp.args.Composite(state=ocp.args.StandardSave(_savable(tree)),
-                                                      config=ocp.args.JsonSave({**config, "checkpoint_format": FORMAT})))
+    with _disk_errors(directory, int(step)):
+        with _manager(directory, keep) as mngr:
+            mngr.save(int(step), args=ocp.args.Composite(state=ocp.args.StandardSave(_savable(tree)),
+                                                          config=ocp.args.JsonSave({**config, "checkpoint_format": FORMAT})))
     step_dir = os.path.join(os.path.abspath(directory), str(int(step)))
     if is_primary():   # Orbax wrote the step from every process; one of them seals it
         files.write_json(os.path.join(step_dir, CHECKSUMS), files.tree_checksums(step_dir, exclude=(CHECKSUMS,)))
+
+
+# Errors of the machine while Orbax (tensorstore) writes: a full disk, a file-size limit, a quota.
+# Tensorstore reports them as a ValueError whose text holds the OS error code and the file.
+DISK_ERRNOS = {errno.ENOSPC: "No space left on device", errno.EFBIG: "File too large",
+               errno.EDQUOT: "Disk quota exceeded"}
+
+
+def disk_error(e: BaseException) -> tuple[int, str | None] | None:
+    """(errno, file or None) if `e` (or an exception it chains) is a full disk, a file-size limit
+    or a quota; None otherwise."""
+    seen = 0
+    while e is not None and seen < 10:
+        if isinstance(e, OSError) and e.errno in DISK_ERRNOS:
+            return e.errno, e.filename
+        text = str(e)
+        m = re.search(r"os_error_code='(\d+)'", text)
+        code = int(m.group(1)) if m else next((n for n, msg in DISK_ERRNOS.items() if msg in text), None)
+        if code in DISK_ERRNOS:
+            f = re.search(r'Failed writing: "([^"]+)"', text) or re.search(r'local file "([^"]+)"', text)
+            return code, f.group(1) if f else None
+        e, seen = e.__cause__ or e.__context__, seen + 1
+    return None
+
+
+class _Held(logging.Filter):
+    """Holds the records of a logger (Orbax logs a failed write's traceback once per thread)."""
+    def __init__(self):
+        super().__init__()
+        self.records = []
+
+    def filter(self, record):
+        self.records.append(record)
+        return False
+
+
+@contextlib.contextmanager
+def _disk_errors(directory: str, step: int):
+    """A full disk (or a file-size limit, a quota) while Orbax saves step `step` becomes one
+    OSError naming the file and the checkpoint: its partial step directory is removed, the
+    newest complete checkpoint stays. Orbax's logged tracebacks and what its threads print are
+    held while it saves and shown again unless the save failed for want of space."""
+    logger, held, err = logging.getLogger("absl"), _Held(), io.StringIO()
+    logger.addFilter(held)
+    real_stderr, sys.stderr = sys.stderr, err
+    full = None
+    try:
+        yield
+    except Exception as e:   # noqa: BLE001 (tensorstore's errors are ValueErrors)
+        full = disk_error(e)
+        if full is None:
+            raise
+        code, path = full
+        tmp = [os.path.join(os.path.abspath(directory), n) for n in os.listdir(directory)
+               if n.startswith(f"{step}.") and n.endswith("-tmp")] if os.path.isdir(directory) else []
+        for t in tmp:
+            shutil.rmtree(t, ignore_errors=True)
+        raise OSError(code, f"{DISK_ERRNOS[code]} while saving checkpoint {step} in {os.path.abspath(directory)} (not "
+                            f"saved; the newest complete checkpoint stays: free space and run the same command)",
+                      path or os.path.abspath(directory)) from None
+    finally:
+        sys.stderr = real_stderr
+        logger.removeFilter(held)
+        if full is None:
+            real_stderr.write(err.getvalue())
+            for r in held.records:
+                logger.handle(r)
 
 
 def discard(directory: str, damaged) -> None:

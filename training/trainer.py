@@ -17,6 +17,7 @@ import json
 import math
 import os
 import signal
+import sys
 from typing import Callable
 
 import jax
@@ -26,7 +27,7 @@ import numpy as np
 from training import budget, checkpoint, mesh, pool, runlog
 from training.checkpoint import Checkpointed, Counters
 from training.practice import Practice
-from training.runconfig import RunConfig, to_json
+from training.runconfig import BOOKKEEPING, RunConfig, to_json
 from training.update import acting_params, init_train_state
 from ttmjx.tools.demos import LEGACY
 from ttmjx.world import files
@@ -191,6 +192,7 @@ class Run:
             checkpoint.discard(self.ckpt_dir, e.skipped)
             return None
         self.check_same_config(loaded.meta)
+        self.repair_config(loaded)
         checkpoint.discard(self.ckpt_dir, loaded.skipped)
         self._absorbed = list(loaded.meta.get("absorbed_data", []))
         self.saved_at = loaded.step
@@ -222,6 +224,33 @@ class Run:
         if not isinstance(saved, dict):
             raise ValueError(f"{path}: not a JSON object; restore it or delete it")
         return saved
+
+    def repair_config(self, loaded: checkpoint.Loaded) -> None:
+        """A resumed run's config.json, missing, empty, invalid or at odds with the checkpoint
+        it resumes from (in a field that changes the computation), is rewritten from the config
+        saved inside that checkpoint, and said on stderr: never left broken."""
+        path = os.path.join(self.cfg.run_dir, "config.json")
+        intact = {k: v for k, v in loaded.meta.items() if k not in BOOKKEEPING}
+        why = None
+        if not os.path.exists(path):
+            why = "missing"
+        else:
+            try:
+                with open(path) as f:
+                    saved = json.load(f)
+            except (OSError, ValueError) as e:
+                why = "empty" if os.path.getsize(path) == 0 else f"not valid JSON ({e})"
+            else:
+                if not isinstance(saved, dict):
+                    why = f"not a JSON object (a {type(saved).__name__})"
+                else:
+                    diff = sorted(k for k in set(saved) | set(intact)
+                                  if saved.get(k) != intact.get(k) and k not in RESUME_MAY_CHANGE)
+                    why = f"at odds with the checkpoint in {', '.join(diff)}" if diff else None
+        if why and mesh.is_primary():
+            files.write_json(path, intact)
+            print(f"[ttmjx] {path}: {why}; rewritten from the config saved in checkpoint {loaded.step}",
+                  file=sys.stderr, flush=True)
 
     def check_same_config(self, saved: dict):
         """ValueError if `saved` (a run's config) computes differently from this run's."""

@@ -832,9 +832,30 @@ def fail(name: str, message: str, code: int = 2) -> NoReturn:
 
 
 def file_error(e: OSError) -> str:
-    """'PATH: cause' of a failed file operation."""
-    where = f"{e.filename}: " if e.filename else ""
-    return f"{where}{e.strerror or e}"
+    """'PATH: cause' of a failed file operation. A write through an open file (numpy's savez, a
+    stream) raises without the file's name: it is then the path the project's innermost frame
+    was writing (its local `path`, `tmp`, ...), so a full disk always names where."""
+    where = e.filename or culprit_path(e.__traceback__)
+    return f"{where}: {e.strerror or e}" if where else f"{e.strerror or e}"
+
+
+PROJECT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def culprit_path(tb) -> str | None:
+    frames = []
+    while tb is not None:
+        frames.append(tb.tb_frame)
+        tb = tb.tb_next
+    for frame in reversed(frames):          # innermost first
+        code = os.path.abspath(frame.f_code.co_filename)
+        if not code.startswith(PROJECT) or os.sep + "site-packages" + os.sep in code:
+            continue
+        for name in ("path", "tmp", "filename", "file", "out", "out_dir", "directory", "run_dir"):
+            value = frame.f_locals.get(name)
+            if isinstance(value, str) and value:
+                return value
+    return None
 
 
 def one_line(box: str) -> str:
