@@ -25,7 +25,7 @@ if [[ $mode == start ]]; then
   traj=$1; shift
   for a in $ARMS; do
     setsid bash -c "cd $PWD; /usr/bin/time -f 'wall %e s, peak rss %M kB' python3 -m ttmjx.cli ablate practice \
-      --scale $SCALE --seeds 5 --cells $a --trajectories $traj --out $T 2>&1 | tr '\r' '\n' \
+      --scale $SCALE --seeds ${SEEDS:-5} --cells $a --trajectories $traj --out $T 2>&1 | tr '\r' '\n' \
       | grep -v 'traj/s\|throw/s\|^\s*$' > $T/$a.log; touch $T/$a.done" </dev/null >/dev/null 2>&1 &
     echo "started $a $(date +%T)" | tee -a "$T/log.txt"
   done
@@ -44,7 +44,7 @@ if [[ -f $T/goalseye.done && -f $T/lfp-equal-updates.done && ! -f $T/edges.done 
       2>>"$T/log.txt" | tail -1 > "$T/edges/$c.json"
     (( SECONDS < t_end + 120 )) || break
   done
-  ls "$T"/edges/*.json | wc -l | grep -q '^10$' && touch "$T/edges.done"
+  ls "$T"/edges/*.json | wc -l | grep -q "^$(( ${SEEDS:-5} * 2 ))$" && touch "$T/edges.done"
 fi
 date +%T >> "$T/log.txt"; cp "$T/log.txt" "$OUT/"; pack
 for a in $ARMS; do echo "== $a"; grep -E "^\[|wall|rror" "$T/$a.log" | tail -8; done
