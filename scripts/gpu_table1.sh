@@ -25,7 +25,7 @@ if [[ $mode == start ]]; then
   traj=$1; shift
   for a in $ARMS; do
     setsid bash -c "cd $PWD; /usr/bin/time -f 'wall %e s, peak rss %M kB' python3 -m ttmjx.cli ablate practice \
-      --scale $SCALE --seeds ${SEEDS:-5} --cells $a --trajectories $traj --out $T 2>&1 | tr '\r' '\n' \
+      --scale $SCALE --seeds ${SEEDS:-5} --cells $a --trajectories $traj --out $T/table 2>&1 | tr '\r' '\n' \
       | grep -v 'traj/s\|throw/s\|^\s*$' > $T/$a.log; touch $T/$a.done" </dev/null >/dev/null 2>&1 &
     echo "started $a $(date +%T)" | tee -a "$T/log.txt"
   done
@@ -38,7 +38,7 @@ while (( SECONDS < t_end )); do
 done
 if [[ -f $T/goalseye.done && -f $T/lfp-equal-updates.done && ! -f $T/edges.done ]]; then
   echo "=== edges evaluation $(date +%T)" | tee -a "$T/log.txt"
-  for run in "$T"/runs/*-seed*; do
+  for run in "$T"/table/runs/*-seed*; do
     c=$(basename "$run")
     [[ -f $T/edges/$c.json ]] || python3 -m ttmjx.cli eval "$run" --goals eval/goals/edges_net.csv --json \
       2>>"$T/log.txt" | tail -1 > "$T/edges/$c.json"
