@@ -298,3 +298,228 @@ def test_a_torn_metrics_line_is_dropped_and_said_and_a_damaged_one_named(tmp_pat
     (tmp_path / "metrics.jsonl").write_text('{"iteration": 0}\nnot json\n{"iteration": 2}\n')
     with pytest.raises(ValueError, match=r"metrics.jsonl: line 2 is not a JSON row"):
         log.rows()
+
+
+# -- the same, as a user meets them: subprocesses, signals, resumes, a full disk -------------------
+import json  # noqa: E402
+import resource  # noqa: E402
+import signal  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ENV = {**os.environ, "PYTHONPATH": ROOT, "JAX_PLATFORMS": "cpu"}
+
+
+def command(*args) -> list[str]:
+    """`ttmjx ARGS` (or `python -m deploy ARGS` when args start with 'deploy') as argv."""
+    if args and args[0] == "deploy":
+        return [sys.executable, "-m", "deploy", *map(str, args[1:])]
+    return [sys.executable, "-m", "ttmjx.cli", *map(str, args)]
+
+
+def run(*args, timeout=300, **kw) -> subprocess.CompletedProcess:
+    return subprocess.run(command(*args), capture_output=True, text=True, timeout=timeout, env=ENV, cwd=ROOT, **kw)
+
+
+def last_line(err: str) -> str:
+    """The command's own last stderr line (JAX, absl and progress bars may write before it)."""
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    return lines[-1] if lines else ""
+
+
+def one_line_error(done, code: int, prefix: str, *words):
+    """Exit `code`, a last stderr line that starts with `prefix` and holds every word, no traceback."""
+    msg = last_line(done.stderr)
+    assert done.returncode == code, (done.returncode, done.stderr[-2000:])
+    assert msg.startswith(prefix) and "Traceback" not in done.stderr, done.stderr[-2000:]
+    for w in words:
+        assert w in msg, (w, msg)
+    return msg
+
+
+def stop_when(proc: subprocess.Popen, ready, sig=signal.SIGTERM, timeout=240) -> subprocess.CompletedProcess:
+    """Send `sig` to `proc` once ready() holds; its exit code and output."""
+    t0 = time.monotonic()
+    while not ready():
+        assert proc.poll() is None, f"ended before the signal: {proc.returncode}: {proc.communicate()[1][-2000:]}"
+        assert time.monotonic() - t0 < timeout, "never ready"
+        time.sleep(0.1)
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=timeout)
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+@pytest.fixture(scope="module")
+def tiny_export(tmp_path_factory):
+    """tests/data/tiny_run_v0 exported (no ONNX graph), read only."""
+    out = str(tmp_path_factory.mktemp("export") / "ex")
+    done = run("export", RUN, "--out", out, "--onnx", "off")
+    assert done.returncode == 0, done.stderr[-2000:]
+    return out
+
+
+def test_sigterm_during_ablate_saves_the_cell_and_the_same_command_resumes(tmp_path):
+    """SIGTERM while a cell trains: its run saves a checkpoint, the command exits 143 naming it (no
+    table yet is not an error), and the same command resumes the cell and finishes the table."""
+    out = tmp_path / "ab"
+    argv = ["ablate", "practice", "--scale", "tiny", "--seeds", "1", "--cells", "goalseye",
+            "--trajectories", "232", "--out", str(out), "--json"]
+    metrics = out / "runs" / "goalseye-seed0" / "metrics.jsonl"
+    proc = subprocess.Popen(command(*argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=ENV, cwd=ROOT)
+    done = stop_when(proc, lambda: metrics.exists() and metrics.stat().st_size > 0)
+    msg = one_line_error(done, 143, "ttmjx ablate: error: stopped by SIGTERM", "checkpoint saved in",
+                         str(out / "runs" / "goalseye-seed0"), "same command")
+    assert "no finished cells" not in done.stderr, msg
+    assert os.listdir(out / "runs" / "goalseye-seed0" / "checkpoints") and not (out / "results").exists()
+    again = run(*argv)
+    assert again.returncode == 0, again.stderr[-2000:]
+    summary = json.loads(again.stdout.strip().splitlines()[-1])
+    assert summary["stopped_by_signal"] == 0 and (out / "results" / "goalseye-seed0.json").exists()
+    assert "resuming" in again.stdout + again.stderr
+
+
+def session_without_wall_time(path) -> dict:
+    s = json.loads(open(path).read())
+    return {k: v for k, v in s.items() if k not in ("wall_s", "realtime_factor", "out")}
+
+
+def test_robot_run_out_interrupted_resumes_to_the_uninterrupted_session(tiny_export, tmp_path):
+    """`ttmjx robot run --out DIR` stopped by SIGTERM keeps its episodes (exit 143); the same
+    command resumes DIR (the logged episodes replayed and checked, not rewritten) and ends with
+    the session an uninterrupted run writes; once finished, it reports it again."""
+    argv = ["robot", "run", "--policy", tiny_export, "--station", "sim", "--goals", "five", "--seed", "2"]
+    whole = run(*argv, "--out", tmp_path / "whole", "--json")
+    assert whole.returncode == 0, whole.stderr[-2000:]
+    out = tmp_path / "cut"
+    proc = subprocess.Popen(command(*argv, "--out", out, "--json"), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=ENV, cwd=ROOT)
+    done = stop_when(proc, lambda: (out / "episode_0001.deploy.npz").exists())
+    one_line_error(done, 143, "ttmjx robot run: error: stopped by SIGTERM", "run the same command")
+    logged = sorted(f for f in os.listdir(out) if f.endswith(".deploy.npz"))
+    assert 2 <= len(logged) < 5 and not (out / "session.json").exists(), logged
+    first = (out / "episode_0000.npz").stat().st_mtime_ns
+    again = run(*argv, "--out", out, "--json")
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert f"resuming {out}: {len(logged)} of 5 episodes logged" in again.stderr, again.stderr[-2000:]
+    assert (out / "episode_0000.npz").stat().st_mtime_ns == first           # kept, not rewritten
+    assert session_without_wall_time(out / "session.json") == session_without_wall_time(tmp_path / "whole" / "session.json")
+    finished = run(*argv, "--out", out, "--json")
+    assert finished.returncode == 0 and "finished earlier" in finished.stderr, finished.stderr[-2000:]
+    other = run(*argv[:-1], "3", "--out", out)            # another seed: another session
+    one_line_error(other, 2, "ttmjx robot run: error:", str(out), "another session", "seed")
+
+
+def test_ctrl_c_during_robot_run_keeps_the_episodes_and_exits_130(tiny_export, tmp_path):
+    out = tmp_path / "logs"
+    proc = subprocess.Popen(command("robot", "run", "--policy", tiny_export, "--station", "sim", "--goals", "five",
+                                    "--out", out), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=ENV, cwd=ROOT)
+    done = stop_when(proc, lambda: (out / "episode_0000.deploy.npz").exists(), sig=signal.SIGINT)
+    one_line_error(done, 130, "ttmjx robot run: error: stopped by SIGINT", "run the same command")
+    assert (out / "episode_0000.meta.json").exists() and (out / "session.plan.json").exists()
+
+
+def test_deploy_repeat_and_rate_are_named_and_bounded_at_the_door():
+    done = run("deploy", "--fake", "--goals", "five", "--repeat", "0")
+    msg = one_line_error(done, 2, "python -m deploy:", "--repeat 0", "expected 1 to")
+    assert "--n" not in msg, msg
+    t0 = time.monotonic()
+    done = run("deploy", "--fake", "--goals", "five", "--rate", "1e9")     # 77 GB before: refused at once
+    one_line_error(done, 2, "python -m deploy:", "--rate", "1e+09", "1 to 250 Hz", "EGM")
+    assert time.monotonic() - t0 < 30
+    one_line_error(run("deploy", "--fake", "--goals", "five", "--rate", "nan"), 2, "python -m deploy:", "--rate nan")
+    one_line_error(run("deploy", "--fake", "--goals", "five", "--frame-stack", "100000"), 2, "python -m deploy:",
+                   "--frame-stack 100000", "1 to 64")
+
+
+def test_outputs_that_hold_something_else_are_refused_naming_it(recorded_tiny_run, tiny_export, tmp_path):
+    """ablate --out, robot run --out and python -m deploy --out pointing at a training run (or an
+    export): refused with the directory and what it holds, nothing written there."""
+    run_dir = str(recorded_tiny_run[0])
+    before = listing(run_dir)
+    one_line_error(run("ablate", "practice", "--scale", "tiny", "--seeds", "1", "--out", run_dir, "--plan"), 2,
+                   "ttmjx ablate: error:", run_dir, "a training run", "checkpoints/")
+    one_line_error(run("robot", "run", "--policy", tiny_export, "--station", "sim", "--goals", "five", "--out", run_dir),
+                   2, "ttmjx robot run: error:", run_dir, "a training run", "config.json")
+    one_line_error(run("deploy", "--fake", "--goals", "five", "--out", run_dir), 2, "python -m deploy:", run_dir,
+                   "a training run")
+    one_line_error(run("deploy", "--fake", "--goals", "five", "--out", tiny_export), 2, "python -m deploy:",
+                   tiny_export, "an export")
+    assert listing(run_dir) == before
+
+
+def test_robot_sweep_has_no_config_option_and_list_lengths_are_checked():
+    one_line_error(run("robot", "sweep", "--policy", RUN, "--out", "x", "--config", "cell.toml"), 2,
+                   "ttmjx robot sweep: error:", "--config")
+    one_line_error(run("train", "--preset", "tiny", "--world.throws.narrow-launch", "1.75", "0.35"), 2,
+                   "ttmjx train: error:", "--world.throws.narrow-launch", "3 values", "got 2")
+    one_line_error(run("train", "--preset", "tiny", "--world.robot.lower", "1", "1"), 2,
+                   "ttmjx train: error:", "--world.robot.lower", "8 entries", "got 2")
+
+
+def can_mount_tmpfs() -> bool:
+    try:
+        return subprocess.run(["unshare", "-rm", "sh", "-c", "mount -t tmpfs -o size=64k none /tmp"],
+                              capture_output=True, timeout=30).returncode == 0
+    except (OSError, subprocess.SubprocessError):
+        return False
+
+
+def on_a_full_disk(argv: list[str], where: str, size_kb: int) -> subprocess.CompletedProcess:
+    """argv with `where` full after size_kb: a tmpfs of that size mounted there in a private mount
+    namespace where the machine allows one (ENOSPC), else a file-size limit (RLIMIT_FSIZE: EFBIG,
+    the same path through every write)."""
+    os.makedirs(where, exist_ok=True)
+    if can_mount_tmpfs():
+        return subprocess.run(["unshare", "-rm", "sh", "-c", f'mount -t tmpfs -o size={size_kb}k none "$0" && exec "$@"',
+                               where, *argv], capture_output=True, text=True, timeout=300, env=ENV, cwd=ROOT)
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (size_kb * 1024, size_kb * 1024))
+    return subprocess.run(argv, capture_output=True, text=True, timeout=300, env=ENV, cwd=ROOT, preexec_fn=limit)
+
+
+def test_a_full_disk_during_a_checkpoint_is_one_line_naming_the_file(oracle_demos, tmp_path):
+    """Orbax's write failing for want of space: one line (not its ~120 lines of tracebacks) with
+    the file and the checkpoint, exit 1; the same command runs on when there is space."""
+    where = str(tmp_path / "disk")
+    argv = command("train", "--preset", "tiny", "--demo-dir", oracle_demos, "--demo-source", "oracle",
+                   "--run-dir", os.path.join(where, "run"), "--max-iterations", "1")
+    done = on_a_full_disk(argv, where, 1000)
+    msg = one_line_error(done, 1, "ttmjx train: error:", os.path.join(where, "run", "checkpoints"),
+                         "while saving checkpoint 0", "newest complete checkpoint stays")
+    assert "No space left on device" in msg or "File too large" in msg, msg
+    assert len([ln for ln in done.stderr.splitlines() if not ln.startswith("WARNING:")]) <= 2, done.stderr[-3000:]
+
+
+def test_demos_on_a_full_disk_names_the_file_and_leaves_nothing(tmp_path):
+    """A dataset cut short by a full disk leaves no partial files: the same command runs again."""
+    out = tmp_path / "d"
+    done = subprocess.run(command("demos", "--source", "oracle", "--n", "20", "--out", out), capture_output=True,
+                          text=True, timeout=300, env=ENV, cwd=ROOT,
+                          preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000)))
+    one_line_error(done, 1, "ttmjx demos: error:", str(out / "trajectories.npz"), "File too large")
+    assert not out.exists(), os.listdir(out)
+
+
+@pytest.mark.parametrize("damage", ["invalid", "empty", "deleted"])
+def test_a_damaged_config_json_is_repaired_from_the_checkpoint_on_resume(damage, recorded_tiny_run, oracle_demos,
+                                                                         tmp_path):
+    run_dir = tmp_path / "run"
+    shutil.copytree(recorded_tiny_run[0], run_dir)
+    path = run_dir / "config.json"
+    good = json.loads(path.read_text())
+    {"invalid": lambda: path.write_text('{"seed": 0,'), "empty": lambda: path.write_text(""),
+     "deleted": path.unlink}[damage]()
+    done = run("train", "--preset", "tiny", "--demo-dir", oracle_demos, "--demo-source", "oracle",
+               "--train.practice-goal-margin", "0", "--train.practice-keep", "near_half",
+               "--train.action-noise-form", "integrating", "--keep-checkpoints", "10", "--run-dir", run_dir, "--json")
+    assert done.returncode == 0, done.stderr[-2000:]
+    said = [ln for ln in done.stderr.splitlines() if "config.json" in ln]
+    assert said and str(path) in said[0] and "rewritten from the config saved in checkpoint" in said[0], done.stderr[-2000:]
+    assert {"invalid": "not valid JSON", "empty": ": empty;", "deleted": ": missing;"}[damage] in said[0], said[0]
+    repaired = json.loads(path.read_text())
+    assert {k: v for k, v in repaired.items() if k != "run_dir"} == {k: v for k, v in good.items() if k != "run_dir"}

@@ -534,8 +534,23 @@ def demos(a: DemosArgs) -> None:
                               rebuild_es=a.rebuild == "all",
                               progress=not a.json, log=(lambda m: print(m, file=sys.stderr)))
         params_dir, es_dir = built, (built if a.rebuild == "all" else None)
-    out = demonstrations.make_dataset(a.world(), a.source, a.n, a.seed, a.out, a.backend,
-                                      progress=not a.json, params_dir=params_dir, es_dir=es_dir)
+    fresh = not os.path.exists(a.out) or not os.listdir(a.out)
+    try:
+        out = demonstrations.make_dataset(a.world(), a.source, a.n, a.seed, a.out, a.backend,
+                                          progress=not a.json, params_dir=params_dir, es_dir=es_dir)
+    except BaseException:
+        # Whole or absent: a dataset cut short (a full disk, a signal) leaves no partial files
+        # (a temporary .npz, a dataset without its figure), so the same command runs again. What
+        # --rebuild built (OUT/bootstrap/) stays.
+        if fresh and os.path.isdir(a.out):
+            import shutil
+            for name in os.listdir(a.out):
+                if name != "bootstrap":
+                    p = os.path.join(a.out, name)
+                    shutil.rmtree(p) if os.path.isdir(p) else os.remove(p)
+            if not os.listdir(a.out):
+                os.rmdir(a.out)
+        raise
     report(a, out, f"{table(out)}\nwrote {a.out} (and {os.path.join(a.out, 'coverage.png')})")
 
 
@@ -976,7 +991,7 @@ def main(argv: list[str] | None = None) -> None:
     except (RuntimeError, ArithmeticError) as e:   # e.g. training.trainer.NonFiniteError
         fail(name, f"{type(e).__name__}: {e}", code=1)
     except KeyboardInterrupt:
-        fail(name, "interrupted", code=130)
+        fail(name, "stopped by SIGINT (Ctrl-C); what was saved is kept: run the same command to resume", code=130)
 
 
 if __name__ == "__main__":
