@@ -33,9 +33,15 @@ STATIONS = ("sim", "fake", "cell")
 # --------------------------------------------------------------------------------------------
 # python -m deploy
 # --------------------------------------------------------------------------------------------
+class OneLineParser(argparse.ArgumentParser):
+    """Bad input is one line, `python -m deploy: error: ...`, and exit code 2 (no usage block)."""
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}; see --help\n")
+
+
 def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m deploy", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = OneLineParser(prog="python -m deploy", description=__doc__,
+                      formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--goals", required=True, help="'x,y;x,y', a .json/.npy/.csv/.txt file, 'five' or 'uniform'")
     p.add_argument("--repeat", type=int, default=1, help="episodes per goal (in a row)")
     p.add_argument("--out", default=None, help="directory for the episode logs")
@@ -76,7 +82,8 @@ def check_args(args: argparse.Namespace) -> None:
                                   ("--stale-ms", args.stale_ms, STALE_MS), ("--seed", args.seed, (0, 2 ** 32 - 1))):
         if not lo <= value <= hi:      # NaN fails too
             unit = " Hz" if flag == "--rate" else ""
-            raise ValueError(f"{flag} {value:g}: expected {lo:g} to {hi:g}{unit}" +
+            num = lambda x: f"{x:g}" if isinstance(x, float) else str(x)   # noqa: E731
+            raise ValueError(f"{flag} {num(value)}: expected {num(lo)} to {num(hi)}{unit}" +
                              (" (the cell's EGM cycle is 250 Hz; a 1.6 s episode needs >= 2 ticks)"
                               if flag == "--rate" else ""))
 
