@@ -21,6 +21,7 @@ runner did not play (a session that ended in HOLD) is a miss (`episodes` says ho
 """
 from __future__ import annotations
 
+import json
 import os
 
 import numpy as np
@@ -56,7 +57,8 @@ def latency_sweep(policy_dir: str, goals: np.ndarray, out_dir: str, added_ms, se
                   jitter_ms=None, progress: bool = True) -> dict:
     """Every series over its points (added_ms [P] of latency; jitter_ms [P] of jitter, default
     added_ms / 5); writes out_dir/sweep.json after every point (an interrupted sweep keeps what
-    it measured) and sweep.png. Returns the sweep.json object."""
+    it measured, and the same call on out_dir measures only the points it lacks) and sweep.png.
+    Returns the sweep.json object."""
     series = tuple(series)
     for s in series:
         if s not in SERIES:
@@ -68,16 +70,23 @@ def latency_sweep(policy_dir: str, goals: np.ndarray, out_dir: str, added_ms, se
     loaded = load_for_station(policy_dir)                 # verified and built once for every point
     base, source = station_timing(loaded.timing, profile)
     base = base.centre()                 # each point adds to a fixed timing: no per-throw drift
-    os.makedirs(out_dir, exist_ok=True)
     out = {"policy": policy_dir, "profile": source, "base_timing": to_dict(base),
            "trained_ranges": loaded.timing["ranges"], "goals": int(len(goals)), "seed": seed,
-           "series": list(series), "points": []}
+           "series": list(series), "points": [],
+           "plan": {"export": files.sha256_file(os.path.join(policy_dir, "manifest.json")),
+                    "goals": np.asarray(goals, np.float64).round(6).tolist(), "added_ms": added_ms,
+                    "jitter_ms": jitter_ms}}
+    earlier = measured_earlier(out_dir, out)
+    os.makedirs(out_dir, exist_ok=True)
     played: dict = {}
     for s in series:
         for lat, jit in zip(added_ms, jitter_ms):
             add = added_for(s, lat, jit)
             tm = with_added(base, **add)
             key = tuple(sorted(to_dict(tm).items()))
+            done = earlier.get((s, jit if s == "jitter" else lat, jit if s in ("jitter", "all") else 0.0))
+            if key not in played and done is not None:     # measured before an interruption: the same
+                played[key] = {k: v for k, v in done.items() if k not in ("series", "added_ms", "added_jitter_ms")}
             if key not in played:
                 extra = sum(add.values()) if s != "action" else add.get("jitter_s", 0.0)
                 config = RunnerConfig(stale_s=0.1 + extra)
@@ -105,6 +114,26 @@ def latency_sweep(policy_dir: str, goals: np.ndarray, out_dir: str, added_ms, se
     files.write_json(os.path.join(out_dir, "sweep.json"), files.json_safe(out), indent=1)
     plot_sweep(out, os.path.join(out_dir, "sweep.png"))
     return out
+
+
+def measured_earlier(out_dir: str, out: dict) -> dict:
+    """{(series, added_ms, added_jitter_ms): point} of the same sweep in out_dir/sweep.json (an
+    interrupted or finished run of this command: every point is a fresh session of the same
+    seed, so a point measured then is the point measured now); {} without one. ValueError naming
+    the file if it holds another sweep (another export, goals, seed, timing or points)."""
+    path = os.path.join(out_dir, "sweep.json")
+    if not os.path.exists(path):
+        return {}
+    try:
+        with open(path) as f:
+            old = json.load(f)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: unreadable ({e}); delete it or choose a new --out") from None
+    same = ("policy", "profile", "base_timing", "trained_ranges", "goals", "seed", "series", "plan")
+    diff = [k for k in same if not isinstance(old, dict) or json.loads(json.dumps(files.json_safe(out[k]))) != old.get(k)]
+    if diff:
+        raise ValueError(f"{path} holds another sweep ({', '.join(diff)} differ); choose a new --out")
+    return {(p["series"], p["added_ms"], p["added_jitter_ms"]): p for p in old["points"]}
 
 
 def sweep_table(out: dict) -> str:

@@ -412,6 +412,26 @@ def test_robot_run_out_interrupted_resumes_to_the_uninterrupted_session(tiny_exp
     one_line_error(other, 2, "ttmjx robot run: error:", str(out), "another session", "seed")
 
 
+def test_an_interrupted_robot_sweep_goes_on_where_it_stopped(tiny_export, tmp_path):
+    """sweep.json is written after every point; SIGTERM after the first, then the same command:
+    only the missing points are played and the sweep is the uninterrupted one."""
+    argv = ["robot", "sweep", "--policy", tiny_export, "--n", "2", "--points", "2", "--series", "ball,action",
+            "--max-ms", "50"]
+    whole = run(*argv, "--out", tmp_path / "whole")
+    assert whole.returncode == 0, whole.stderr[-2000:]
+    out = tmp_path / "cut"
+    proc = subprocess.Popen(command(*argv, "--out", out), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=ENV, cwd=ROOT)
+    done = stop_when(proc, lambda: (out / "sweep.json").exists())
+    one_line_error(done, 143, "ttmjx robot sweep: error: stopped by SIGTERM", "run the same command")
+    assert len(json.loads((out / "sweep.json").read_text())["points"]) < 4
+    again = run(*argv, "--out", out)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert json.loads((out / "sweep.json").read_text()) == json.loads((tmp_path / "whole" / "sweep.json").read_text())
+    one_line_error(run(*argv[:5], "3", *argv[6:], "--out", out), 2, "ttmjx robot sweep: error:", "sweep.json",
+                   "another sweep", "goals")
+
+
 def test_ctrl_c_during_robot_run_keeps_the_episodes_and_exits_130(tiny_export, tmp_path):
     out = tmp_path / "logs"
     proc = subprocess.Popen(command("robot", "run", "--policy", tiny_export, "--station", "sim", "--goals", "five",
@@ -448,6 +468,8 @@ def test_outputs_that_hold_something_else_are_refused_naming_it(recorded_tiny_ru
                    "a training run")
     one_line_error(run("deploy", "--fake", "--goals", "five", "--out", tiny_export), 2, "python -m deploy:",
                    tiny_export, "an export")
+    one_line_error(run("robot", "sweep", "--policy", tiny_export, "--out", run_dir), 2, "ttmjx robot sweep: error:",
+                   run_dir, "config.json")
     assert listing(run_dir) == before
 
 

@@ -400,11 +400,11 @@ class RobotSweepArgs(Report):
     its policy built once for every point): a table, sweep.json and sweep.png."""
     BOUNDS: ClassVar[dict] = {"n": (1, 100_000), "max_ms": (0.0, 1000.0), "points": (2, 50),
                               "max_jitter_ms": (0.0, 1000.0)}
-    NEW_DIRS: ClassVar[tuple] = ("out",)
     policy: str
     """An export directory (ttmjx export --out)."""
     out: str
-    """Directory for sweep.json and sweep.png (new or empty)."""
+    """Directory for sweep.json and sweep.png: new, empty, or this sweep's own (an interrupted sweep
+    goes on: the points it measured are kept, the rest measured)."""
     n: int = 100
     """Uniform goals per point (the same goals and throws at every point)."""
     max_ms: float = 150.0
@@ -420,6 +420,16 @@ class RobotSweepArgs(Report):
     timing: str | None = None
     """The station's timing the latency is added to; None: the timing the policy was trained under
     (its centre); or a profile (nominal, zero)."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not os.path.isdir(self.out):
+            check_new_path("out", self.out, want_dir=True)     # a file there, or an unwritable parent
+        else:
+            other = sorted(n for n in os.listdir(self.out) if n not in ("sweep.json", "sweep.png") and not n.startswith("."))
+            if other:
+                raise ValueError(f"--out {self.out!r} holds {', '.join(other[:4])}{', ...' if len(other) > 4 else ''}, "
+                                 f"not a sweep's sweep.json and sweep.png; choose a new or empty directory")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
