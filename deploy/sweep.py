@@ -166,6 +166,5 @@ def plot_sweep(out: dict, path: str) -> None:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=6)
     fig.tight_layout()
-    fig.savefig(path + ".tmp.png", dpi=120)
+    files.write_figure(path, fig, dpi=120)
     plt.close(fig)
-    os.replace(path + ".tmp.png", path)

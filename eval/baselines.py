@@ -103,10 +103,10 @@ def parse_methods(spec: str) -> list[str]:
 
 
 def plan(methods: list[str], scale: str, seeds: int, out: str, trajectories: int | None = None,
-         reward: RewardConfig = RewardConfig(), rl: dict | None = None) -> list[cellrun.Cell]:
-    """The cells (seed-major), every configuration built and every finished result checked
-    before anything is written."""
-    entries = [(m, seed) for seed in range(seeds) for m in methods]
+         reward: RewardConfig = RewardConfig(), rl: dict | None = None, first_seed: int = 0) -> list[cellrun.Cell]:
+    """The cells of seeds first_seed..first_seed+seeds-1 (seed-major), every configuration built
+    and every finished result checked before anything is written."""
+    entries = [(m, seed) for seed in range(first_seed, first_seed + seeds) for m in methods]
     return cellrun.planned_cells(out, entries,
                                  lambda m, seed, run_dir: method_config(m, scale, seed, run_dir, trajectories, reward, rl))
 
@@ -178,9 +178,11 @@ def trainer(cfg, progress: bool = True) -> cellrun.Outcome:
 
 
 def run(methods: list[str], scale: str, seeds: int, out: str, trajectories: int | None = None,
-        reward: RewardConfig = RewardConfig(), progress: bool = True, command: str = "", rl: dict | None = None) -> dict:
-    """Train the cells that are not finished, then rebuild the table from every finished result."""
-    cells = plan(methods, scale, seeds, out, trajectories, reward, rl)
+        reward: RewardConfig = RewardConfig(), progress: bool = True, command: str = "", rl: dict | None = None,
+        first_seed: int = 0) -> dict:
+    """Train the cells that are not finished, then rebuild the table from every finished result
+    (those of other seeds in `out` too: machines that ran other seeds add to one table)."""
+    cells = plan(methods, scale, seeds, out, trajectories, reward, rl, first_seed)
     stopped = cellrun.run_cells(cells, os.path.join(out, "results"), trainer, progress, f"baseline {scale}",
                                 log=lambda m: log(m, file=sys.stderr))
     return cellrun.finish(cells, out, stopped, lambda: build_report(scale, out, command))

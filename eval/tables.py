@@ -87,11 +87,8 @@ def _pyplot():
 
 def save_png(fig, png: str) -> str:
     """The figure written atomically (a crash leaves the old picture or the new one)."""
-    import io
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
+    files.write_figure(png, fig, dpi=110)
     _pyplot().close(fig)
-    files.write_bytes(png, buf.getvalue())
     return png
 
 

@@ -174,6 +174,10 @@ NAMED = [   # (argv, exit code, substrings the one line must hold)
     ("robot run --policy {empty} --station fake --goals {tmp}/garbage.npy", 2, ["garbage.npy", ".npy"]),
     ("robot run --policy {empty} --station fake --goals {tmp}/goals.csv", 2, ["goals.csv", "not finite"]),
     ("robot run --policy {empty} --station fake --goals {tmp}/own_half.csv", 2, ["own_half.csv", "opponent's half"]),
+    # options of another station, parsed and ignored before
+    ("robot run --policy {empty} --station fake --goals five --config {tmp}/cell.toml", 2,
+     ["--config", "cell station", "'fake'"]),
+    ("robot run --policy {empty} --station fake --goals five --timing centre", 2, ["--timing", "'fake'"]),
     ("eval " + RUN + " --goals {tmp}/wide.npy", 2, ["wide.npy", "[N, 2]"]),
     ("eval " + RUN + " --goals {tmp}/missing.npy", 2, ["missing.npy", "does not exist"]),
     ("eval " + RUN + " --goals {tmp}/goals.csv", 2, ["goals.csv", "not finite"]),
@@ -230,6 +234,19 @@ def test_the_message_names_the_culprit(argv, code, words, named_scratch):
     for w in words:
         assert w in msg, (w, msg)
     assert listing(named_scratch) == before            # nothing written: no run directory either
+
+
+# One of each kind above, as a user meets it: a fresh process, its exit code and its last line.
+AS_SUBPROCESS = [0, 6, 7, 10, 12, 15, 18, 21, 25, 26, 31, 33]
+
+
+@pytest.mark.parametrize("index", AS_SUBPROCESS, ids=[NAMED[i][0].replace(TRAIN, "train") for i in AS_SUBPROCESS])
+def test_the_message_names_the_culprit_in_a_fresh_process(index, named_scratch):
+    argv, code, words = NAMED[index]
+    argv = argv.replace("{tmp}", str(named_scratch)).replace("{empty}", str(named_scratch / "empty")).split()
+    before = listing(named_scratch)
+    one_line_error(run(*argv), code, "ttmjx", *words)
+    assert listing(named_scratch) == before
 
 
 def test_logs_of_another_rate_are_refused_where_they_are_loaded(tmp_path):
@@ -527,6 +544,13 @@ def test_demos_on_a_full_disk_names_the_file_and_leaves_nothing(tmp_path):
     assert not out.exists(), os.listdir(out)
 
 
+def resume_tiny(run_dir, oracle_demos) -> subprocess.CompletedProcess:
+    """The recorded tiny run's command, on run_dir (a copy of it, damaged by the caller)."""
+    return run("train", "--preset", "tiny", "--demo-dir", oracle_demos, "--demo-source", "oracle",
+               "--train.practice-goal-margin", "0", "--train.practice-keep", "near_half",
+               "--train.action-noise-form", "integrating", "--keep-checkpoints", "10", "--run-dir", run_dir, "--json")
+
+
 @pytest.mark.parametrize("damage", ["invalid", "empty", "deleted"])
 def test_a_damaged_config_json_is_repaired_from_the_checkpoint_on_resume(damage, recorded_tiny_run, oracle_demos,
                                                                          tmp_path):
@@ -536,12 +560,36 @@ def test_a_damaged_config_json_is_repaired_from_the_checkpoint_on_resume(damage,
     good = json.loads(path.read_text())
     {"invalid": lambda: path.write_text('{"seed": 0,'), "empty": lambda: path.write_text(""),
      "deleted": path.unlink}[damage]()
-    done = run("train", "--preset", "tiny", "--demo-dir", oracle_demos, "--demo-source", "oracle",
-               "--train.practice-goal-margin", "0", "--train.practice-keep", "near_half",
-               "--train.action-noise-form", "integrating", "--keep-checkpoints", "10", "--run-dir", run_dir, "--json")
+    done = resume_tiny(run_dir, oracle_demos)
     assert done.returncode == 0, done.stderr[-2000:]
     said = [ln for ln in done.stderr.splitlines() if "config.json" in ln]
     assert said and str(path) in said[0] and "rewritten from the config saved in checkpoint" in said[0], done.stderr[-2000:]
     assert {"invalid": "not valid JSON", "empty": ": empty;", "deleted": ": missing;"}[damage] in said[0], said[0]
     repaired = json.loads(path.read_text())
     assert {k: v for k, v in repaired.items() if k != "run_dir"} == {k: v for k, v in good.items() if k != "run_dir"}
+
+
+
+def test_an_emptied_checkpoints_dir_beside_old_metrics_is_refused_and_the_metrics_kept(recorded_tiny_run,
+                                                                                       oracle_demos, tmp_path):
+    run_dir = tmp_path / "run"
+    shutil.copytree(recorded_tiny_run[0], run_dir)
+    shutil.rmtree(run_dir / "checkpoints")
+    (run_dir / "checkpoints").mkdir()
+    before = (run_dir / "metrics.jsonl").read_text()
+    done = resume_tiny(run_dir, oracle_demos)
+    one_line_error(done, 2, "ttmjx train: error:", str(run_dir), "checkpoints/ holds no checkpoint", "metrics.jsonl")
+    assert (run_dir / "metrics.jsonl").read_text() == before
+
+
+def test_a_torn_metrics_line_is_said_on_resume_and_the_rows_kept(recorded_tiny_run, oracle_demos, tmp_path):
+    run_dir = tmp_path / "run"
+    shutil.copytree(recorded_tiny_run[0], run_dir)
+    metrics = run_dir / "metrics.jsonl"
+    whole = metrics.read_text()
+    metrics.write_text(whole + '{"iteration": 9, "lo')             # a crash in the middle of a write
+    done = resume_tiny(run_dir, oracle_demos)
+    assert done.returncode == 0, done.stderr[-2000:]
+    said = [ln for ln in done.stderr.splitlines() if "cut short" in ln]
+    assert said and str(metrics) in said[0], done.stderr[-2000:]
+    assert metrics.read_text() == whole

@@ -345,3 +345,8 @@ def test_gcsl_and_lfp_are_the_presets():
     assert g.demos == 0 and g.practice and not lfp.practice and lfp.demos == lfp.total_trajectories
     assert dataclasses.replace(g, demos=tiny().demos, pretrain_steps=tiny().pretrain_steps, preset="tiny") == \
         dataclasses.replace(tiny(), run_dir="r")
+
+
+def test_first_seed_plans_the_later_seeds_of_one_table(tmp_path):
+    cells = baselines.plan(["gcsl"], "tiny", 2, str(tmp_path), first_seed=3)
+    assert [(c.name, c.seed, c.config.seed) for c in cells] == [("gcsl-seed3", 3, 3), ("gcsl-seed4", 4, 4)]

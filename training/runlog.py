@@ -106,6 +106,6 @@ def plot_curves(metrics_path: str, png: str) -> str | None:
     b.set_xlabel("total trajectories"), b.set_ylabel("mean distance to goal (m)"), b.grid(alpha=0.3)
     fig.suptitle(os.path.basename(os.path.dirname(os.path.abspath(metrics_path))))
     fig.tight_layout()
-    fig.savefig(png, dpi=110)
+    files.write_figure(png, fig, dpi=110)
     plt.close(fig)
     return png

@@ -313,7 +313,9 @@ class BaselineArgs(Report):
     trajectories: int | None = None
     """Trajectories per cell; None: the scale's (full: 120,000, the paper's)."""
     seeds: int = 5
-    """Seeds per method (0..N-1)."""
+    """Seeds per method: --seed..--seed+N-1."""
+    seed: int = 0
+    """The first seed (so that several machines or calls each run some seeds of one table)."""
     scale: Literal["tiny", "full"] = "full"
     """tiny (CPU tests: 2 environments, tiny batches) or full (one GPU per cell)."""
     out: str | None = None
@@ -391,6 +393,18 @@ class RobotRunArgs(Report):
     """sim: play a station timing outside the range the policy was trained under (the summary says so)."""
     config: str | None = None
     """cell: the cell config (TOML: EGM, gantry Modbus, tracker, launcher; docs/ROBOT.md)."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.config is not None and self.station != "cell":
+            raise ValueError(f"--config {self.config!r} configures the cell station; --station is {self.station!r} "
+                             "(drop --config, or use --station cell)")
+        sim_only = [flag for flag, given in (("--timing", self.timing is not None),
+                                             ("--allow-untrained-timing", self.allow_untrained_timing),
+                                             ("--charge-compute", self.charge_compute)) if given]
+        if sim_only and self.station != "sim":
+            raise ValueError(f"{sim_only[0]} sets the simulated station's timing; --station is {self.station!r} "
+                             "(drop it, or use --station sim)")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -694,6 +708,7 @@ def baseline(a: BaselineArgs) -> None:
     methods = baselines.parse_methods(a.method)
     out = a.out or os.path.join("baselines", a.scale)
     command = " ".join(["ttmjx baseline", a.method, "--scale", a.scale, "--seeds", str(a.seeds)]
+                       + (["--seed", str(a.seed)] if a.seed else [])
                        + (["--trajectories", str(a.trajectories)] if a.trajectories else [])
                        + (["--out", a.out] if a.out else []))
     if a.report:
@@ -701,7 +716,7 @@ def baseline(a: BaselineArgs) -> None:
     else:
         rl = {name: c for name, c in (("ppo", a.ppo), ("sac", a.sac), ("es", a.es)) if c != type(c)()}
         summary = baselines.run(methods, a.scale, a.seeds, out, a.trajectories, a.reward, progress=not a.json,
-                                command=command, rl=rl)
+                                command=command, rl=rl, first_seed=a.seed)
     table_report(a, "baseline", summary, out)
 
 

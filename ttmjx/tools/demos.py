@@ -330,13 +330,10 @@ def _summary_rows(s: dict) -> list[tuple[str, str]]:
 
 
 def _save(fig, path: str) -> str:
-    import io
     import matplotlib.pyplot as plt
     from ttmjx.world import files
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    files.write_figure(path, fig, dpi=110, bbox_inches="tight")
     plt.close(fig)
-    files.write_bytes(path, buf.getvalue())
     return path
 
 

@@ -60,6 +60,7 @@ ttmjx/tools/assets/ (es_policy.npz, es_policy.json).
 """
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -72,7 +73,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from ttmjx.world import backends, observation
+from ttmjx.world import backends, files, observation
 from ttmjx.world.config import World
 
 ASSETS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "assets")
@@ -185,12 +186,11 @@ def save_params(path: str, params: dict, meta: dict | None = None) -> str:
     arrays = {k: np.asarray(params[k], np.float32) for k in PARAM_NAMES}
     arrays["format_version"] = np.asarray(FORMAT_VERSION, np.int32)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = path + ".tmp.npz"
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    files.write_bytes(path, buf.getvalue())
     if meta is not None:
-        with open(path[:-4] + ".json", "w") as f:
-            json.dump({"format_version": FORMAT_VERSION, **meta}, f, indent=2)
+        files.write_json(path[:-4] + ".json", {"format_version": FORMAT_VERSION, **meta})
     return path
 
 

@@ -6,6 +6,7 @@ never a half-written one. Standard library only (the robot side uses it too).
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import math
 import os
@@ -45,6 +46,15 @@ def json_safe(x):
     if isinstance(x, (list, tuple)):
         return [json_safe(v) for v in x]
     return x
+
+
+def write_figure(path: str, fig, **savefig) -> str:
+    """A matplotlib figure written as PNG atomically (a crash leaves the old picture or the new
+    one); the caller closes the figure."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", **savefig)
+    write_bytes(path, buf.getvalue())
+    return path
 
 
 def write_json(path: str, obj, indent: int | None = 2) -> None:
