@@ -1,7 +1,13 @@
 """Shared test set-up: JAX's persistent compilation cache (this process and every subprocess a
-test starts), CPU-friendly defaults, and the session's shared fixtures: tiny's oracle
-demonstrations and the recorded tiny run, each made once for every module that uses them."""
+test starts), CPU-friendly defaults, the session's shared fixtures (tiny's oracle demonstrations
+and the recorded tiny run, each made once for every module and every xdist worker that uses
+them) and the order modules start in (the longest first, so that two workers finish together).
+
+The suite runs on 2 workers (pyproject.toml: `-n 2 --dist loadfile`): a module's tests stay in
+one worker (module fixtures are made once), modules are handed out in the order below."""
+import fcntl
 import gc
+import json
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -20,6 +26,17 @@ os.environ["TTMJX_JAX_CACHE"] = _cache
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", _cache)
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
 
+# Modules in the order they start, longest first (measured wall time on 2 cores, CI); the rest
+# follow in their collection order. With two workers the long ones run side by side and the
+# short ones fill in at the end.
+FIRST = ()
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(FIRST)}
+    module = lambda item: os.path.basename(item.nodeid.split("::")[0])  # noqa: E731
+    items.sort(key=lambda item: rank.get(module(item), len(FIRST)))   # stable: a module stays in order
+
 
 @pytest.fixture(autouse=True, scope="module")
 def _compiled_code_released_after_each_module():
@@ -34,17 +51,39 @@ def _compiled_code_released_after_each_module():
     gc.collect()
 
 
+def made_once(tmp_path_factory, name, make):
+    """make(directory) -> a JSON-able result, run once per test session: under xdist the first
+    worker that asks makes it in a directory all workers see (the session's base temporary
+    directory) while the others wait for it, then read its result."""
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        return make(tmp_path_factory.mktemp(name))
+    root = tmp_path_factory.getbasetemp().parent          # shared by this session's workers
+    done = root / f"{name}.json"
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            if not done.exists():
+                directory = root / name
+                directory.mkdir()
+                result = make(directory)
+                done.write_text(json.dumps(result))
+            return json.loads(done.read_text())
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
 @pytest.fixture(scope="session")
 def oracle_demos(tmp_path_factory):
     """tiny's 200 oracle (goal-directed striker) narrow demonstrations, seed 5: those of
     tests/data/before_renovation.json, collected once for every module (read-only)."""
-    from training import runconfig
-    from ttmjx.tools import demos
-    from ttmjx.world import record
-    d = str(tmp_path_factory.mktemp("oracle_demos"))
-    traj = demos.collect(runconfig.tiny().world, "oracle", 200, seed=5)
-    record.save(d, traj, {"source": "oracle", "distribution": "narrow", "seed": 5})
-    return d
+    def make(d):
+        from training import runconfig
+        from ttmjx.tools import demos
+        from ttmjx.world import record
+        traj = demos.collect(runconfig.tiny().world, "oracle", 200, seed=5)
+        record.save(str(d), traj, {"source": "oracle", "distribution": "narrow", "seed": 5})
+        return str(d)
+    return made_once(tmp_path_factory, "oracle_demos", make)
 
 
 @pytest.fixture(scope="session")
@@ -52,10 +91,13 @@ def recorded_tiny_run(oracle_demos, tmp_path_factory):
     """One uninterrupted tiny run as the recordings were made (tests/recorded.py tiny_recorded),
     every checkpoint kept: tests/test_trainer.py's reference for resumes and
     tests/test_sharding.py's 1-device run, trained once (read-only: copy it to resume it)."""
-    from eval.evaluate import training_evaluation
-    from recorded import tiny_recorded
-    from training.trainer import Run
-    d = tmp_path_factory.mktemp("recorded_tiny_run")
-    cfg = tiny_recorded(oracle_demos, d)
-    out = Run(cfg, evaluate=training_evaluation(cfg), progress=False).run()
-    return d, out
+    from pathlib import Path
+
+    def make(d):
+        from eval.evaluate import training_evaluation
+        from recorded import tiny_recorded
+        from training.trainer import Run
+        cfg = tiny_recorded(oracle_demos, d)
+        return [str(d), Run(cfg, evaluate=training_evaluation(cfg), progress=False).run()]
+    d, out = made_once(tmp_path_factory, "recorded_tiny_run", make)
+    return Path(d), out
