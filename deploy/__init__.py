@@ -1,25 +1,13 @@
-"""Deployment: export, numpy inference and the physical-robot runner (hardware interfaces,
-safety, logging), plus a simulated station.
+"""From a trained policy to the robot, in two rooms:
 
-deploy/export.py writes a policy as safetensors + contract + golden self-test (+ an ONNX graph,
-with the optional `onnx` extra) under a manifest of SHA-256 hashes, and loads it back
-(`load_export`) as a numpy policy (deploy/numpy_policy.py), or (`load_onnx_export`) on
-onnxruntime (deploy/onnx_policy.py); the runner takes any object with
-`reset() -> state` and `step(state, frame[13], frames[k, 13]) -> (state, action[8])`. This
-package imports numpy only (no JAX) so it starts fast on the robot's computer; export() itself
-and the simulated station (deploy/station.py: MuJoCo C + the thrower) import JAX/MuJoCo and are
-not imported here.
+- deploy/robot/: the robot side, what a robot's computer installs (`pip install ttmjx[robot]`:
+  numpy, safetensors, tyro; onnxruntime for the ONNX graph; the cell's drivers). It reads
+  exports, runs the policy, the runner, the safety filters and the drivers, and never imports
+  JAX, MuJoCo or the trainer.
+- deploy/sim/: the simulator side, which needs the simulator and the trainer: it writes exports
+  from checkpoints, simulates the cell as a station (in process, or over the cell's network
+  protocols with `ttmjx robot serve`) and sweeps latencies.
+
+The robot side reaches the simulated station only over the network protocols, as it reaches the
+real cell; the simulator side uses the robot side (the runner plays on its station).
 """
-from deploy.contract import (ROBOT_MODEL_ID, Contract, contract_from_dict, contract_from_world,
-                             contract_to_dict)
-from deploy.export import ExportError, load_export, load_onnx_export, read_contract
-from deploy.episode_log import Episode, EpisodeLog, load_episode, save_episode
-from deploy.goals import check_goal_region, episode_goals, goals_from_arg, load_goals, parse_goals
-from deploy.hardware import BallTracker, Clock, MonotonicClock, Robot
-from deploy.interp import Interpolated, SampleBuffer, interpolate
-from deploy.modes import Mode, StateMachine, TransitionError
-from deploy.numpy_policy import ExportedPolicy, PolicySpec
-from deploy.runner import (FrameStack, NoBallError, NumpyPolicy, Runner, RunnerConfig,
-                           frame_of)
-from deploy.safety import (FAULTS, LATCHING, Command, Limits, Violations, count_violations,
-                           fault_names, limits_from_contract, safe_target)

@@ -4,7 +4,7 @@ An ablation is a base configuration (a scale's setting, SCALES) and variants, ea
 field overrides applied with dataclasses.replace through the nested frozen configs (ABLATIONS,
 the one table of what is compared). A cell is one (variant, seed): one training run in its own
 directory under the ablation's output directory, reduced to a small JSON result when it finishes
-(eval/cells.py). The outputs (eval/tables.py) are rebuilt from the results present.
+(eval/table_cells.py). The outputs (eval/tables.py) are rebuilt from the results present.
 
     OUT/runs/<variant>-seed<s>/     the cell's run (config.json, metrics.jsonl, checkpoints/)
     OUT/results/<variant>-seed<s>.json   the finished cell (skipped when it exists)
@@ -26,7 +26,7 @@ import sys
 import typing
 from typing import Any, Callable, Literal, NamedTuple
 
-from eval import cells as cellrun
+from eval import table_cells as cellrun
 from eval import tables
 from training import runconfig
 from training.runconfig import RunConfig
@@ -99,11 +99,9 @@ class Scale(NamedTuple):
     base: Callable[[str], RunConfig]      # setting ('sim' or 'new') -> the base configuration
 
 
-# Trajectories per cell at full scale: paper-sim's practice round (4,000 MJX episodes + 200
-# updates) takes ~14 s on one H100 alone (docs/BENCHMARKS.md), so 60k trajectories are ~15
-# rounds = 3.5 min, plus 2,000 pretraining updates (~1 min), 3,600 demonstrations, 8 evaluations
-# and compilation: ~6-8 min per cell, inside the ~10-minute budget. The paper's 120k would be
-# ~11 min today (pass --trajectories 120000 once rounds are faster).
+# Trajectories per cell at full scale: what fits one ~10-minute device call with its pretraining,
+# demonstrations, evaluations and compilation (docs/BENCHMARKS.md); --trajectories 120000 runs
+# the paper's budget.
 FULL_TRAJECTORIES = 60_000
 
 

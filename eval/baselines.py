@@ -1,12 +1,12 @@
 """`ttmjx baseline METHOD`: the paper's Table I methods on one world, through the cells of
-eval/cells.py (skip finished cells, atomic JSON results, the same table, curves and landing maps
+eval/table_cells.py (skip finished cells, atomic JSON results, the same table, curves and landing maps
 as `ttmjx ablate`).
 
 Methods (the table's variants):
 
     ppo, sac, es   brax's trainers on training/baselines/env.py (training/baselines/agents.py),
                    their policy saved as a GoalsEye checkpoint and evaluated by the same final
-                   evaluation as every ablation cell (eval/cells.py: same goals, same throws)
+                   evaluation as every ablation cell (eval/table_cells.py: same goals, same throws)
     gcsl           this project's trainer from 0 demonstrations (practice only)
     lfp            this project's trainer on demonstrations alone, as many as the budget
                    (practice off; GoalsEye's gradient updates: the `practice` ablation's
@@ -30,8 +30,8 @@ import jax
 import jax.numpy as jnp
 
 from eval import ablate
-from eval import cells as cellrun
-from eval import tables as report
+from eval import table_cells as cellrun
+from eval import tables
 from eval.evaluate import uniform_runs
 from training import runconfig
 from ttmjx.world import files
@@ -200,4 +200,4 @@ def build_report(scale: str, out: str, command: str = "") -> dict:
                           f"{'/'.join(f'{t:,}' for t in budgets)} trajectories per cell. Final evaluation of each "
                           f"cell: uniform goals, seed {cellrun.FINAL_EVAL_SEED} (the same goals and throws for "
                           f"every cell)."}
-    return report.write_report(out, results, list(METHODS), header)
+    return tables.write_report(out, results, list(METHODS), header)

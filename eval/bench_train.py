@@ -27,7 +27,7 @@ from training.runconfig import preset
 from training.seeds import SeedRuns, seed_configs, stacked
 from training.trainer import is_eval_iteration, practice_iterations, pretrain_iterations, total_iterations
 from training.update import acting_params
-from ttmjx.world.goals import uniform_goals
+from ttmjx.world.env import uniform_goals
 
 
 def timed(fn, reps: int) -> tuple[float, float, object]:

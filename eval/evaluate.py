@@ -1,5 +1,5 @@
 """Evaluation of trained policies: uniform goals, the five-goal protocol or a user's goal set
-(eval.goalset), no exploration noise; an ensemble plays the goals in equal blocks, one block per
+(ttmjx.world.goalfile), no exploration noise; an ensemble plays the goals in equal blocks, one block per
 member. Scoring is the world's one strict goal-metrics function (ttmjx.world.goals); `--out`
 writes the per-episode record (eval.report)."""
 from __future__ import annotations
@@ -9,7 +9,6 @@ import math
 import jax
 import numpy as np
 
-from eval.goalset import is_goal_file, load_goal_file
 from eval.report import check_out_dir, write_eval_dir
 from models.config import PolicyConfig
 from models.policy import ensemble_size, make_policy, member
@@ -18,7 +17,9 @@ from training.checkpoint import load_checkpoint
 from ttmjx.world import thrower
 from ttmjx.world.backends import Backend, resolve_backend
 from ttmjx.world.config import THROW_DISTRIBUTIONS, World
-from ttmjx.world.goals import five_goals, goal_metrics, per_goal_metrics, uniform_goals
+from ttmjx.world.env import uniform_goals
+from ttmjx.world.goalfile import is_goal_file, read_goal_file
+from ttmjx.world.goals import five_goals, goal_metrics, per_goal_metrics
 from ttmjx.world.record import Trajectories
 
 
@@ -118,7 +119,7 @@ def evaluate_checkpoint(path: str, goals: str = "200", per_goal: int = 40, distr
                         backend: str | None = None, seed: int = 1234, member_index: int | None = None,
                         step: int | None = None, out: str | None = None) -> dict:
     """`ttmjx eval`: metrics of a run's checkpoint (its moving-average policy) on `goals`: a number
-    of uniform goals, 'five' (per_goal attempts at each of A-E) or a goal file (eval.goalset, one
+    of uniform goals, 'five' (per_goal attempts at each of A-E) or a goal file (ttmjx.world.goalfile, one
     attempt per goal); throws of the run's distribution or `distribution`; one member alone with
     member_index. With `out`, the metrics, one row per episode and the ball tracks are written
     there (eval.report)."""
@@ -130,7 +131,7 @@ def evaluate_checkpoint(path: str, goals: str = "200", per_goal: int = 40, distr
     loaded = load_checkpoint(path, step)
     cfg = loaded.cfg
     world = cfg.world if distribution is None else cfg.world.with_throws(distribution)
-    goal_set = load_goal_file(goals, world.table) if is_goal_file(goals) else None
+    goal_set = read_goal_file(goals, world.table) if is_goal_file(goals) else None
     if goal_set is not None and len(goal_set) > episodes_that_fit(World()):
         raise ValueError(f"goal file {goals!r} holds {len(goal_set)} goals; expected at most "
                          f"{episodes_that_fit(World())} (what fits in this device's memory)")

@@ -1,4 +1,4 @@
-"""The outputs of an experiment table, built from its cell results (eval/cells.py) alone: a
+"""The outputs of an experiment table, built from its cell results (eval/table_cells.py) alone: a
 markdown table (mean +- 95% interval over seeds), learning curves with seed bands, a landing
 map per variant and a JSON summary. Rebuilt whole every time, so it always shows every result
 present, and never needs a run directory or a checkpoint.

@@ -127,8 +127,8 @@ def with_action_noise(policy: Policy, scale: float) -> Policy:
 
     Why not a + z with the true joints observed: the trained policies act as "target = observed
     joint + small increment", so a held z added to every target moves the robot by z again at
-    every control step and the closed loop integrates it (the robot drifted ~40|z| over an
-    episode, and within 30 cm fell from 74% to 14% at b = 0.05; docs/RESULTS.md). Hiding z from
+    every control step and the closed loop integrates it into a drift (docs/DESIGN.md,
+    "Measurements behind the code"). Hiding z from
     the observation leaves the paper's intent: one held perturbation of the executed
     trajectory, of size |z|, for the whole rollout. The rollout records the TRUE frames and the
     EXECUTED command (inner action + z, clipped), so every relabeled (observation, action,

@@ -24,11 +24,11 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from deploy.drivers import config as cellconfig   # noqa: E402
+from deploy.robot.drivers import config as cellconfig  # noqa: E402
 
 
 def tick_timing(out_dir: str, n: int) -> dict:
-    from deploy.episode_log import load_episode
+    from deploy.robot.episode_log import load_episode
     late, ticks, skipped, overruns = [], 0, 0, 0
     for i in range(n):
         try:
@@ -52,7 +52,7 @@ def transport_delays(out_dir: str, n: int, arrivals: list, tol=(1e-6, 2e-6)) -> 
     """Command transport delay per part (ms): from the runner's send (episode log t_sent) of a
     command whose part changed to the arrival of that target at the station (serve's
     `arrivals`); a target overtaken before it arrived (coalesced, lost) is not counted."""
-    from deploy.episode_log import load_episode
+    from deploy.robot.episode_log import load_episode
     parts = {"arm": (slice(2, 8), tol[0]), "gantry": (slice(0, 2), tol[1])}
     got = {p: [(t, np.asarray(q)) for t, part, q in arrivals if part == p] for p in parts}
     out = {}
@@ -88,8 +88,8 @@ def transport_delays(out_dir: str, n: int, arrivals: list, tol=(1e-6, 2e-6)) -> 
 
 def over_sockets(policy: str, goals, seed: int, faults: str, egm_hz: float, timing: str,
                  tmp: str, server_cpu: int | None = None) -> dict:
-    from deploy.drivers.cell import Launcher, run_cell
-    from deploy.serve import serving
+    from deploy.robot.drivers.cell import Launcher, run_cell
+    from deploy.sim.serve import serving
     cfg = cellconfig.loopback_config()
     path = os.path.join(tmp, "cell.toml")
     with open(path, "w") as f:
@@ -125,14 +125,14 @@ def main() -> None:
     a = p.parse_args()
     if a.runner_cpu is not None:
         os.sched_setaffinity(0, {a.runner_cpu})
-    from deploy.goals import session_goals
+    from deploy.robot.goals import session_goals
     goals = session_goals("uniform", a.goals, a.seed)
     tmp = a.out or tempfile.mkdtemp(prefix="cell_figures_")
     os.makedirs(tmp, exist_ok=True)
     if a.inprocess:
-        from deploy.station import run_sim
         import dataclasses
-        from deploy.station import TIMING
+
+        from deploy.sim.station import TIMING, run_sim
         timing = TIMING[a.timing]
         if a.action_delay_ms is not None:
             timing = dataclasses.replace(timing, action_delay_s=a.action_delay_ms / 1000.0)

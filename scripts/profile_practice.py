@@ -8,7 +8,6 @@ import sys
 import time
 
 import jax
-import jax.numpy as jnp
 
 from training.practice import practice_policy
 from training.runconfig import preset
@@ -29,8 +28,9 @@ def timed(name, fn, *args, reps=3):
 
 def main(name):
     import dataclasses
+
     from ttmjx.world import thrower
-    from ttmjx.world.goals import uniform_goals
+    from ttmjx.world.env import uniform_goals
     cfg = dataclasses.replace(preset(name), demos=256, run_dir=f"/tmp/prof_{name}")
     run = Run(cfg, progress=False)
     ck = run.initial()

@@ -3,14 +3,14 @@
 (a) `ttmjx eval`'s rollout (eval.evaluate.rollout_goals on ttmjx.world.backends.Backend("c")) of
 one member of a run's moving-average policy toward N uniform goals (the draw of
 `ttmjx eval RUN --goals N --member M --seed S`); (b) that member exported and played by
-deploy.runner.Runner on the simulated station (deploy.station) toward the same goals, on the
+deploy.robot.runner.Runner on the simulated station (deploy.sim.station) toward the same goals, on the
 same throws, from the same start poses. Per episode: the first step whose frame or command
 differs, hit, landing; in all: the goal metrics of both and the fraction on the opponent's half.
 
     python scripts/runner_vs_eval.py RUN --n 100 --timing zero --start launch --json
     python scripts/runner_vs_eval.py RUN --n 100 --timing nominal --start trigger --pose home --charge-compute
 
---timing zero: ideal sensors (deploy.station.TIMING); --start launch: tick 0 at the launch (the
+--timing zero: ideal sensors (deploy.sim.station.TIMING); --start launch: tick 0 at the launch (the
 station announces it), as the simulation's episodes start; trigger: at the runner's ball
 trigger; --pose eval: each episode starts from the evaluation's start pose (home + the reset
 noise), home: from the contract's home. Compute time is charged to the simulated clock only
@@ -28,15 +28,17 @@ import tempfile
 import jax
 import numpy as np
 
-from deploy.export import export, export_world, load_export
-from deploy.runner import Runner
-from deploy.station import TIMING, SimClock, SimStation, goal_summary, play
+from deploy.robot.exported import export_world, load_export
+from deploy.robot.runner import Runner
+from deploy.sim.export import export
+from deploy.sim.station import TIMING, SimClock, SimStation, goal_summary, play
 from eval.evaluate import rollout_goals
 from models.policy import member
 from training.checkpoint import load_checkpoint
 from ttmjx.world import files, thrower
 from ttmjx.world.backends import Backend
-from ttmjx.world.goals import goal_metrics, uniform_goals
+from ttmjx.world.env import uniform_goals
+from ttmjx.world.goals import goal_metrics
 
 FRAME_TOL = ACTION_TOL = 1e-4
 

@@ -11,7 +11,7 @@ import os
 import pytest
 
 from eval import ablate
-from eval import tables as report
+from eval import tables
 from eval.evaluate import training_evaluation
 from training.trainer import Run
 from ttmjx import cli
@@ -78,16 +78,16 @@ def test_cell_selection():
 # -- statistics ------------------------------------------------------------------------------
 def test_interval_is_students_t():
     """References worked by hand: t_{0.975} = 12.7062 (1 df), 4.3027 (2), 2.7764 (4), 2.0930 (19)."""
-    assert report.interval([0.5]) == {"mean": 0.5, "half": None, "n": 1}
-    two = report.interval([1.0, 3.0])                     # s = sqrt(2): half = t * s / sqrt(2)
+    assert tables.interval([0.5]) == {"mean": 0.5, "half": None, "n": 1}
+    two = tables.interval([1.0, 3.0])                     # s = sqrt(2): half = t * s / sqrt(2)
     assert two["mean"] == 2.0 and math.isclose(two["half"], 12.7062)
-    three = report.interval([0.2, 0.3, 0.4, None, float("nan")])   # s = 0.1; unlanded cells dropped
+    three = tables.interval([0.2, 0.3, 0.4, None, float("nan")])   # s = 0.1; unlanded cells dropped
     assert three["n"] == 3 and math.isclose(three["half"], 4.3027 * 0.1 / math.sqrt(3), rel_tol=1e-9)
-    five = report.interval([1, 2, 3, 4, 5])               # s = sqrt(2.5)
+    five = tables.interval([1, 2, 3, 4, 5])               # s = sqrt(2.5)
     assert math.isclose(five["half"], 2.7764 * math.sqrt(2.5) / math.sqrt(5), rel_tol=1e-9)
-    assert report.t975(19) == 2.0930 and report.t975(27) == 2.0595 and report.t975(10_000) == 1.9799
-    assert report.interval([None]) == {"mean": None, "half": None, "n": 0}
-    assert report.cell_text(two, 100, 1) == "200.0 +- 1270.6" and report.cell_text(report.interval([0.25]), 100, 1) == "25.0"
+    assert tables.t975(19) == 2.0930 and tables.t975(27) == 2.0595 and tables.t975(10_000) == 1.9799
+    assert tables.interval([None]) == {"mean": None, "half": None, "n": 0}
+    assert tables.cell_text(two, 100, 1) == "200.0 +- 1270.6" and tables.cell_text(tables.interval([0.25]), 100, 1) == "25.0"
 
 
 # -- a real ablation at the tiny scale ---------------------------------------------------------
@@ -120,7 +120,7 @@ def test_tiny_demos_ablation_end_to_end_resumes_and_skips(tmp_path):
     for v, r in results.items():
         f = r["final"]
         row = f"| {v} | 1 | " + " | ".join(
-            "-" if f[k] is None else f"{s * f[k]:.{d}f}" for k, _, s, d in report.COLUMNS if k in f) + " |"
+            "-" if f[k] is None else f"{s * f[k]:.{d}f}" for k, _, s, d in tables.COLUMNS if k in f) + " |"
         assert row in table, (row, table)
     assert "| d100 | 0 | - |" in table
     saved = json.load(open(os.path.join(out, "summary.json")))
@@ -144,5 +144,5 @@ def test_tiny_demos_ablation_end_to_end_resumes_and_skips(tmp_path):
 
 def test_t_table_agrees_with_scipy_where_installed():
     stats = pytest.importorskip("scipy.stats")
-    for df, t in report.T975.items():
+    for df, t in tables.T975.items():
         assert abs(stats.t.ppf(0.975, df) - t) < 1e-4, df

@@ -16,8 +16,8 @@ from models.policy import make_policy, member, with_action_noise, with_integrati
 from training.checkpoint import load_checkpoint
 from ttmjx.world import thrower
 from ttmjx.world.backends import Backend
-from ttmjx.world.env import Policy
-from ttmjx.world.goals import RADII, goal_metrics, scored_distance, uniform_goals
+from ttmjx.world.env import Policy, uniform_goals
+from ttmjx.world.goals import RADII, goal_metrics, scored_distance
 
 RUN = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "tiny_run_v0")
 N, B = 16, 0.1                  # throws; the noise scale b of the test

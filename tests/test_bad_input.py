@@ -169,7 +169,7 @@ NAMED = [   # (argv, exit code, substrings the one line must hold)
     # goal files of the robot runner name the file
     ("robot run --policy {empty} --station fake --goals {tmp}/missing.npy", 2, ["missing.npy", "does not exist"]),
     ("robot run --policy {empty} --station fake --goals {tmp}/missing.csv", 2, ["missing.csv", "does not exist"]),
-    ("robot run --policy {empty} --station fake --goals {tmp}/junk.json", 2, ["junk.json", "not valid JSON"]),
+    ("robot run --policy {empty} --station fake --goals {tmp}/junk.json", 2, ["junk.json", ".csv (header x,y) or .npy"]),
     ("robot run --policy {empty} --station fake --goals {tmp}/wide.npy", 2, ["wide.npy", "[N, 2]"]),
     ("robot run --policy {empty} --station fake --goals {tmp}/garbage.npy", 2, ["garbage.npy", ".npy"]),
     ("robot run --policy {empty} --station fake --goals {tmp}/goals.csv", 2, ["goals.csv", "not finite"]),
@@ -330,10 +330,8 @@ ENV = {**os.environ, "PYTHONPATH": ROOT, "JAX_PLATFORMS": "cpu"}
 
 
 def command(*args) -> list[str]:
-    """`ttmjx ARGS` (or `python -m deploy ARGS` when args start with 'deploy') as argv."""
-    if args and args[0] == "deploy":
-        return [sys.executable, "-m", "deploy", *map(str, args[1:])]
-    return [sys.executable, "-m", "ttmjx.cli", *map(str, args)]
+    """`ttmjx ARGS` as argv (the console script's entry, ttmjx/entry.py)."""
+    return [sys.executable, "-m", "ttmjx.entry", *map(str, args)]
 
 
 def run(*args, timeout=300, **kw) -> subprocess.CompletedProcess:
@@ -459,32 +457,31 @@ def test_ctrl_c_during_robot_run_keeps_the_episodes_and_exits_130(tiny_export, t
     assert (out / "episode_0000.meta.json").exists() and (out / "session.plan.json").exists()
 
 
-def test_deploy_repeat_and_rate_are_named_and_bounded_at_the_door():
-    done = run("deploy", "--fake", "--goals", "five", "--repeat", "0")
-    msg = one_line_error(done, 2, "python -m deploy:", "--repeat 0", "expected 1 to")
-    assert "--n" not in msg, msg
-    t0 = time.monotonic()
-    done = run("deploy", "--fake", "--goals", "five", "--rate", "1e9")     # 77 GB before: refused at once
-    one_line_error(done, 2, "python -m deploy:", "--rate", "1e+09", "1 to 250 Hz", "EGM")
-    assert time.monotonic() - t0 < 30
-    one_line_error(run("deploy", "--fake", "--goals", "five", "--rate", "nan"), 2, "python -m deploy:", "--rate nan")
-    one_line_error(run("deploy", "--fake", "--goals", "five", "--frame-stack", "100000"), 2, "python -m deploy:",
-                   "--frame-stack 100000", "1 to 64")
+def test_the_robot_side_names_its_bounds_at_the_door():
+    done = run("robot", "run", "--station", "fake", "--goals", "five", "--n", "0")
+    one_line_error(done, 2, "ttmjx robot run: error:", "--n 0", "between 1 and 100000")
+    one_line_error(run("robot", "run", "--station", "fake", "--goals", "five", "--stale-ms", "nan"), 2,
+                   "ttmjx robot run: error:", "--stale-ms", "NaN")
+    one_line_error(run("robot", "run", "--station", "cell", "--goals", "five"), 2, "ttmjx robot run: error:",
+                   "--station cell needs --policy")
+    one_line_error(run("robot", "bench", "--frame-stack", "100000"), 2, "ttmjx robot bench: error:",
+                   "--frame-stack 100000", "between 1 and 64")
 
 
 def test_outputs_that_hold_something_else_are_refused_naming_it(recorded_tiny_run, tiny_export, tmp_path):
-    """ablate --out, robot run --out and python -m deploy --out pointing at a training run (or an
-    export): refused with the directory and what it holds, nothing written there."""
+    """ablate --out, robot run --out (on the simulated or the fake station) and robot sweep --out
+    pointing at a training run (or an export): refused with the directory and what it holds,
+    nothing written there."""
     run_dir = str(recorded_tiny_run[0])
     before = listing(run_dir)
     one_line_error(run("ablate", "practice", "--scale", "tiny", "--seeds", "1", "--out", run_dir, "--plan"), 2,
                    "ttmjx ablate: error:", run_dir, "a training run", "checkpoints/")
     one_line_error(run("robot", "run", "--policy", tiny_export, "--station", "sim", "--goals", "five", "--out", run_dir),
                    2, "ttmjx robot run: error:", run_dir, "a training run", "config.json")
-    one_line_error(run("deploy", "--fake", "--goals", "five", "--out", run_dir), 2, "python -m deploy:", run_dir,
-                   "a training run")
-    one_line_error(run("deploy", "--fake", "--goals", "five", "--out", tiny_export), 2, "python -m deploy:",
-                   tiny_export, "an export")
+    one_line_error(run("robot", "run", "--station", "fake", "--goals", "five", "--out", run_dir), 2,
+                   "ttmjx robot run: error:", run_dir, "a training run")
+    one_line_error(run("robot", "run", "--station", "fake", "--goals", "five", "--out", tiny_export), 2,
+                   "ttmjx robot run: error:", tiny_export, "an export")
     one_line_error(run("robot", "sweep", "--policy", tiny_export, "--out", run_dir), 2, "ttmjx robot sweep: error:",
                    run_dir, "config.json")
     assert listing(run_dir) == before

@@ -288,7 +288,8 @@ def test_sac_q_networks_are_the_policy_size():
 def test_trains_evaluates_and_exports(method, tmp_path, monkeypatch):
     from brax.training import acting
 
-    from deploy.export import export_checkpoint, load_export
+    from deploy.robot.exported import load_export
+    from deploy.sim.export import export_checkpoint
     from eval.evaluate import evaluate_checkpoint
     from training.checkpoint import load_checkpoint
     evaluators, init = [], acting.Evaluator.__init__

@@ -12,7 +12,7 @@ import pytest
 from ttmjx.tools import demos
 from ttmjx.world import backends, env, record, thrower
 from ttmjx.world.config import World
-from ttmjx.world.goals import uniform_goals
+from ttmjx.world.env import uniform_goals
 
 CFG = World().with_throws("narrow")
 PERT = demos.Perturbation()
@@ -74,6 +74,7 @@ def test_configurations_saved_with_scripted_load_as_oracle():
     """A checkpoint's config from before the rename ("scripted") means today's "oracle"."""
     import json
     import os
+
     from training.runconfig import RunConfig, from_json
     path = os.path.join(os.path.dirname(__file__), "data", "tiny_run_v0", "checkpoints", "6", "config", "metadata")
     with open(path) as f:

@@ -11,8 +11,8 @@ import pytest
 pytest.importorskip("abb_robot_client")
 pytest.importorskip("pymodbus")
 
-from deploy.drivers import config as cellconfig          # noqa: E402
-from deploy.serve import serving                  # noqa: E402
+from deploy.robot.drivers import config as cellconfig  # noqa: E402
+from deploy.sim.serve import serving  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RUN = os.path.join(ROOT, "tests", "data", "tiny_run_v0")

@@ -4,19 +4,43 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import subprocess
+import sys
 from collections import Counter
 
 import numpy as np
 import pytest
 
-from deploy import (FAULTS, Contract, FrameStack, Mode, NoBallError, Runner, RunnerConfig,
-                    SampleBuffer, TransitionError, Violations, contract_from_dict,
-                    contract_from_world, contract_to_dict, count_violations, episode_goals,
-                    goals_from_arg, check_goal_region, interpolate, limits_from_contract,
-                    load_episode, parse_goals, safe_target)
-from deploy.fakes import FakeClock, FakeRobot, FakeTracker, FollowBallPolicy
+from deploy.robot import (
+    FAULTS,
+    Contract,
+    FrameStack,
+    Mode,
+    NoBallError,
+    Runner,
+    RunnerConfig,
+    SampleBuffer,
+    TransitionError,
+    Violations,
+    check_goal_region,
+    contract_from_dict,
+    contract_from_world,
+    contract_to_dict,
+    count_violations,
+    episode_goals,
+    goals_from_arg,
+    interpolate,
+    limits_from_contract,
+    load_episode,
+    parse_goals,
+    safe_target,
+)
+from deploy.robot.fakes import FakeClock, FakeRobot, FakeTracker, FollowBallPolicy
 from ttmjx.world import observation, record
 from ttmjx.world.config import World
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 CONTRACT = Contract()                      # 20 Hz, k = 8, 1.6 s -> 32 ticks
 DT = CONTRACT.dt
@@ -158,12 +182,13 @@ def test_contract_validates_and_round_trips():
 
 def test_goals_come_from_a_spec_a_file_or_a_list(tmp_path):
     np.testing.assert_allclose(parse_goals("0.7,0.3; 0.4 -0.5"), [[0.7, 0.3], [0.4, -0.5]])
-    (tmp_path / "g.json").write_text(json.dumps({"goals": [[0.5, 0.1], [1.0, -0.2]]}))
     np.save(tmp_path / "g.npy", np.array([[0.5, 0.1]]))
-    (tmp_path / "g.csv").write_text("# five-goal file\n0.5,0.1\n1.0,-0.2  # B\n")
-    np.testing.assert_allclose(goals_from_arg(str(tmp_path / "g.json")), [[0.5, 0.1], [1.0, -0.2]])
+    (tmp_path / "g.csv").write_text("name,y,x\nA,0.1,0.5\nB,-0.2,1.0\n")     # the header names the columns
     np.testing.assert_allclose(goals_from_arg(str(tmp_path / "g.npy")), [[0.5, 0.1]])
     np.testing.assert_allclose(goals_from_arg(str(tmp_path / "g.csv")), [[0.5, 0.1], [1.0, -0.2]])
+    (tmp_path / "g.json").write_text(json.dumps({"goals": [[0.5, 0.1]]}))
+    with pytest.raises(ValueError, match=r"g.json.*expected .csv \(header x,y\) or .npy"):
+        goals_from_arg(str(tmp_path / "g.json"))
     np.testing.assert_allclose(episode_goals([[1, 2], [3, 4]], 2), [[1, 2], [1, 2], [3, 4], [3, 4]])
     with pytest.raises(ValueError, match="two numbers"):
         parse_goals("0.7")
@@ -198,18 +223,55 @@ def test_state_machine_allows_only_documented_transitions():
 
 
 def test_fakes_implement_the_hardware_interfaces():
-    from deploy import BallTracker, Clock, Robot
+    from deploy.robot import BallTracker, Clock, Robot
     clock, robot, tracker, runner = bench()
     assert isinstance(clock, Clock) and isinstance(robot, Robot) and isinstance(tracker, BallTracker)
 
 
 def test_command_line_runs_goals_from_a_spec_and_rejects_bad_ones(tmp_path, capsys):
-    from deploy.cli import main
-    assert main(["--fake", "--goals", "0.7,0.3;0.4,-0.5", "--out", str(tmp_path)]) == 0
-    assert json.loads(capsys.readouterr().out)["episodes"] == 2
+    from deploy.robot.cli import main
+    main(["robot", "run", "--station", "fake", "--goals", "0.7,0.3;0.4,-0.5", "--out", str(tmp_path), "--json"])
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["episodes"] == 2
     assert load_episode(str(tmp_path), "episode_0001").meta["goal"] == pytest.approx([0.4, -0.5])
-    assert main(["--fake", "--goals", "3.0,0.0"]) == 2
-    assert "off the opponent's half" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as ex:
+        main(["robot", "run", "--station", "fake", "--goals", "3.0,0.0"])
+    assert ex.value.code == 2 and "off the opponent's half" in capsys.readouterr().err
+
+
+# A robot's computer: the simulator's packages cannot be imported at all.
+NO_SIMULATOR = """
+import importlib.abc, sys
+class NoSimulator(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name.split(".")[0] in ("jax", "jaxlib", "mujoco", "flax", "optax", "orbax", "brax", "matplotlib"):
+            raise ImportError(f"No module named {name!r} (a robot's computer)", name=name)
+sys.meta_path.insert(0, NoSimulator())
+sys.argv = ["ttmjx", *sys.argv[1:]]
+from ttmjx.entry import main
+main()
+"""
+
+
+def ttmjx_without_simulator(*args, tmp_path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", NO_SIMULATOR, *args], capture_output=True, text=True, timeout=120,
+                          cwd=tmp_path, env={**os.environ, "PYTHONPATH": ROOT})
+
+
+def test_the_robot_side_runs_where_jax_and_mujoco_cannot_be_imported(tmp_path):
+    """`ttmjx robot run` on the fake station and `ttmjx robot bench` through the console script's
+    entry on a machine without the simulator's packages; a command that needs them says so."""
+    out = tmp_path / "logs"
+    done = ttmjx_without_simulator("robot", "run", "--station", "fake", "--goals", "five", "--out", str(out), "--json",
+                                   tmp_path=tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert json.loads(done.stdout.strip().splitlines()[-1])["episodes"] == 5
+    done = ttmjx_without_simulator("robot", "bench", "--hidden", "64", "--steps", "50", "--json", tmp_path=tmp_path)
+    assert done.returncode == 0 and json.loads(done.stdout.strip().splitlines()[-1])["p50_ms"] > 0, done.stderr[-2000:]
+    done = ttmjx_without_simulator("train", "--preset", "tiny", tmp_path=tmp_path)
+    assert done.returncode == 2 and "pip install 'ttmjx[sim]'" in done.stderr and done.stderr.count("\n") == 1, done.stderr
+    done = ttmjx_without_simulator("robot", "run", "--station", "sim", "--policy", str(tmp_path), "--goals", "five",
+                                   tmp_path=tmp_path)
+    assert done.returncode == 2 and "ttmjx[sim]" in done.stderr and done.stderr.count("\n") == 1, done.stderr
 
 
 def test_no_ball_leaves_the_runner_armed():
@@ -337,7 +399,7 @@ def test_recurrent_state_is_threaded_and_reset_per_episode():
 
 def test_the_garbage_collector_is_off_while_episodes_run_and_back_after():
     """A full collection stops every thread (the drivers' too) for longer than the stale bound in
-    a process that has loaded JAX; the runner keeps it off during episodes (deploy/runner.py)."""
+    a process that has loaded JAX; the runner keeps it off during episodes (deploy/robot/runner.py)."""
     import gc
 
     class Watching(FollowBallPolicy):
@@ -385,7 +447,7 @@ def test_episodes_are_saved_as_trajectory_records(tmp_path):
         s = (np.clip(x["t_grid"], t_lo, t_hi + ext) - t_lo) / (t_hi - t_lo)
         np.testing.assert_allclose(observation.ball_pos(back.traj.obs[0]), lo + s[:, None] * (hi - lo), atol=1e-5)
     with pytest.raises(FileExistsError):
-        from deploy import save_episode
+        from deploy.robot import save_episode
         save_episode(str(tmp_path), "episode_0000", eps[0])
 
 

@@ -1,4 +1,4 @@
-"""The cell's drivers (deploy/drivers/) against `ttmjx robot serve` over real loopback sockets:
+"""The cell's drivers (deploy/robot/drivers/) against `ttmjx robot serve` over real loopback sockets:
 a whole session plays through them, and each injected fault ends as it must (a logged driver
 fault, HOLD where the data cannot be trusted), never in a traceback or a command on bad data.
 
@@ -20,15 +20,17 @@ import pytest
 pytest.importorskip("abb_robot_client")
 pytest.importorskip("pymodbus")
 
-from deploy.contract import Contract                                   # noqa: E402
-from deploy.drivers import config as cellconfig                        # noqa: E402
-from deploy.drivers.cell import Launcher, run_cell
-from deploy.serve import serving            # noqa: E402
-from deploy.drivers.tracker import WIRE, pack_sample, unpack_sample    # noqa: E402
-from deploy.episode_log import load_episode                            # noqa: E402
-from deploy.fakes import FollowBallPolicy                              # noqa: E402
-from deploy.runner import RunnerConfig                                 # noqa: E402
-from deploy.serve import parse_faults                                  # noqa: E402
+from deploy.robot.contract import Contract  # noqa: E402
+from deploy.robot.drivers import config as cellconfig  # noqa: E402
+from deploy.robot.drivers.cell import Launcher, run_cell
+from deploy.robot.drivers.tracker import WIRE, pack_sample, unpack_sample  # noqa: E402
+from deploy.robot.episode_log import load_episode  # noqa: E402
+from deploy.robot.fakes import FollowBallPolicy  # noqa: E402
+from deploy.robot.runner import RunnerConfig  # noqa: E402
+from deploy.sim.serve import (
+    parse_faults,  # noqa: E402
+    serving,  # noqa: E402
+)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CONTRACT = Contract(control_hz=20.0)
@@ -70,7 +72,7 @@ def session(served, name, faults="", goals=GOALS, config=QUICK):
 
 
 def latched(summary) -> set:
-    from deploy.safety import LATCHING, FAULTS
+    from deploy.robot.safety import FAULTS, LATCHING
     return {k for k in summary["faults"] if k in FAULTS and FAULTS[k] & LATCHING}
 
 
@@ -221,9 +223,9 @@ def test_ports_in_use_and_unreachable_drive_are_one_line_errors(tmp_path):
 
 def test_served_arm_and_gantry_ramp_apart():
     """serve's station: each half of a command ramps from its own arrival; the gantry's half
-    arriving later does not restart the arm's ramp (deploy/serve_station.py)."""
-    from deploy.serve_station import ServedStation
-    from deploy.station import SimClock, TIMING
+    arriving later does not restart the arm's ramp (deploy/sim/serve_station.py)."""
+    from deploy.sim.serve_station import ServedStation
+    from deploy.sim.station import TIMING, SimClock
     from ttmjx.world.config import World
     clock = SimClock()
     s = ServedStation(World(control_hz=100), CONTRACT, clock=clock, timing=TIMING["zero"])
@@ -240,11 +242,12 @@ def test_served_arm_and_gantry_ramp_apart():
 def joined_robot():
     """(CellRobot over a real ModbusGantry and EgmArm without sockets, clock, feed(t, part, q))."""
     import threading
-    from deploy.drivers import egm as egm_mod
-    from deploy.drivers import gantry as gantry_mod
-    from deploy.drivers.cell import CellRobot
-    from deploy.drivers.history import SampleHistory
-    from deploy.fakes import FakeClock
+
+    from deploy.robot.drivers import egm as egm_mod
+    from deploy.robot.drivers import gantry as gantry_mod
+    from deploy.robot.drivers.cell import CellRobot
+    from deploy.robot.drivers.history import SampleHistory
+    from deploy.robot.fakes import FakeClock
     cfg = cellconfig.CellConfig()
     clock = FakeClock(start=0.0)
     gantry, arm = object.__new__(gantry_mod.ModbusGantry), object.__new__(egm_mod.EgmArm)
@@ -262,7 +265,7 @@ def test_a_stalled_gantry_reading_is_not_joined_as_a_jump():
     """After a stall of both streams (55 ms, as a loaded serve once did) the arm's message can
     come before the gantry's reading: the joined samples must still move the gantry no faster
     than it moved (the runner's joint_jump check compares their stamps), so the parts are
-    joined where the gantry's line still reaches (deploy/drivers/cell.py)."""
+    joined where the gantry's line still reaches (deploy/robot/drivers/cell.py)."""
     robot, clock, feed = joined_robot()
     v = 0.8                                                   # m/s, the gantry's x; the arm's j1
     events = [(t, "gantry") for t in np.arange(0.0, 0.1, 0.01)]
@@ -309,8 +312,9 @@ def test_messages_queued_behind_a_late_driver_thread_keep_only_the_newest():
     (a stall of the runner's process); all are checked, only the newest is kept and answered
     once. A motors-off message inside a burst still latches."""
     from abb_robot_client._egm_protobuf import egm_pb2
-    from deploy.drivers.egm import DATA, MOTORS_ON, RAPID_RUNNING, EgmArm
-    from deploy.hardware import MonotonicClock
+
+    from deploy.robot.drivers.egm import DATA, MOTORS_ON, RAPID_RUNNING, EgmArm
+    from deploy.robot.hardware import MonotonicClock
 
     def message(seq, deg, motors=MOTORS_ON):
         m = egm_pb2.EgmRobot()
@@ -353,8 +357,8 @@ def test_gantry_replies_late_by_a_poll_period_are_dropped_a_slower_drive_is_not(
     """Against serve's drive: replies turned 40 ms slower (the usual ~1 ms) lose their positions
     as late (gantry_late_reply), at most MAX_LATE_DROPS in a row, so readings still come; back to
     the usual speed, nothing is dropped."""
-    from deploy.drivers.gantry import MAX_LATE_DROPS, ModbusGantry
-    from deploy.hardware import MonotonicClock
+    from deploy.robot.drivers.gantry import MAX_LATE_DROPS, ModbusGantry
+    from deploy.robot.hardware import MonotonicClock
     _, cfg, launcher, _ = served
     g = ModbusGantry(cfg.gantry, MonotonicClock()).start()
     try:

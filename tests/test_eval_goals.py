@@ -1,5 +1,5 @@
 """Strict success (ttmjx.world.goals), practice goals beyond the table, user goal files and what
-`ttmjx eval RUN --goals FILE --out DIR` writes (eval.goalset, eval.report)."""
+`ttmjx eval RUN --goals FILE --out DIR` writes (ttmjx.world.goalfile, eval.report)."""
 import contextlib
 import csv
 import io
@@ -11,10 +11,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from eval.goalset import load_goal_file
 from ttmjx import cli
 from ttmjx.world.config import Table, World
-from ttmjx.world.goals import goal_metrics, goal_stats, uniform_goals
+from ttmjx.world.env import uniform_goals
+from ttmjx.world.goalfile import read_goal_file as load_goal_file
+from ttmjx.world.goals import goal_metrics, goal_stats
 
 DATA = os.path.join(os.path.dirname(__file__), "data")
 RUN = os.path.join(DATA, "tiny_run_v0")

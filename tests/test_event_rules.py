@@ -1,6 +1,6 @@
 """The event rules (hit, bounce on the robot's half, net, landing, on the opponent's half, done)
 have one definition, ttmjx.world.env.update_events. The simulation folds it over each control
-step's physics steps (env.advance); the simulated station (deploy/station.py) folds it over one
+step's physics steps (env.advance); the simulated station (deploy/sim/station.py) folds it over one
 physics step at a time as it steps MuJoCo C. On the same recorded ball/paddle tracks both must
 give identical events."""
 from __future__ import annotations
@@ -12,8 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from deploy import Contract
-from deploy.station import SimStation, fold_physics_steps
+from deploy.robot import Contract
+from deploy.sim.station import SimStation, fold_physics_steps
 from ttmjx.world import env
 from ttmjx.world.config import World
 

@@ -13,13 +13,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from deploy import ROBOT_MODEL_ID, Contract, ExportError, load_export, read_contract
-from deploy.export import (CONTRACT_FILE, GOLDEN_FILE, MANIFEST_FILE, ONNX_FILE, WEIGHTS_FILE, export,
-                           export_checkpoint, sha256_bytes)
-from deploy.numpy_policy import ExportedPolicy, PolicySpec, tensor_shapes
-from deploy.policy_bench import benchmark
-from models import (Normalizer, PolicyConfig, PolicyParams, init_ensemble, init_params, make_policy,
-                    member)
+from deploy.robot import ROBOT_MODEL_ID, Contract, ExportError, load_export, read_contract
+from deploy.robot.exported import CONTRACT_FILE, GOLDEN_FILE, MANIFEST_FILE, ONNX_FILE, WEIGHTS_FILE, sha256_bytes
+from deploy.robot.numpy_policy import ExportedPolicy, PolicySpec, tensor_shapes
+from deploy.robot.policy_bench import benchmark
+from deploy.sim.export import export, export_checkpoint
+from models import Normalizer, PolicyConfig, PolicyParams, init_ensemble, init_params, make_policy, member
 from ttmjx.world import env, observation
 from ttmjx.world.config import World
 
@@ -73,7 +72,7 @@ def jax_actions(pcfg, params, frames, stacks):
 
 
 def numpy_policy(pcfg, params) -> ExportedPolicy:
-    from deploy.export import policy_tensors, select_members
+    from deploy.sim.export import policy_tensors, select_members
     tensors, is_ens = policy_tensors(params)
     tensors, _ = select_members(tensors, is_ens, None, is_ens)
     return ExportedPolicy(PolicySpec(pcfg.kind, pcfg.hidden, pcfg.layers, pcfg.obs_size,
@@ -375,8 +374,9 @@ def test_onnx_graph_equals_numpy_policy_on_the_golden_inputs(which, ensemble_exp
     """policy.onnx on onnxruntime (one thread) gives the numpy policy's actions, member actions
     and LSTM state, step by step from reset, on the golden frames and on fresh ones."""
     pytest.importorskip("onnxruntime")
-    from deploy import load_onnx_export
     from safetensors.numpy import load
+
+    from deploy.robot import load_onnx_export
     d = ensemble_export[0] if which == "lstm" else mlp_export
     npol, contract = load_export(d)
     opol, ocontract = load_onnx_export(d)
@@ -411,7 +411,7 @@ def test_onnx_optional(tmp_path, monkeypatch):
     export(params, MLP, World(), str(tmp_path / "off"), onnx=False)
     assert ONNX_FILE not in os.listdir(tmp_path / "off") and read_contract(str(tmp_path / "off"))["onnx"] is None
     load_export(str(tmp_path / "off"))
-    from deploy import load_onnx_export
+    from deploy.robot import load_onnx_export
     with pytest.raises(ExportError, match="has no ONNX graph"):
         load_onnx_export(str(tmp_path / "off"))
     monkeypatch.setitem(sys.modules, "onnx", None)          # `import onnx` now raises ImportError
@@ -423,7 +423,7 @@ def test_onnx_optional(tmp_path, monkeypatch):
 
 def test_load_needs_numpy_only(ensemble_export):
     """The robot's side (load_export, the numpy policy, the runner) never imports JAX."""
-    code = ("import sys; from deploy.export import load_export; from deploy.runner import Runner; "
+    code = ("import sys; from deploy.robot.exported import load_export; from deploy.robot.runner import Runner; "
             f"p, c = load_export({ensemble_export[0]!r}); "
             "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('jax', 'jaxlib', 'flax', 'mujoco', 'torch')); "
             "assert not bad, bad; print(p.members)")

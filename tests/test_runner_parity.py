@@ -21,7 +21,7 @@ N, STEPS = 3, 40
 @pytest.fixture(scope="module")
 def played(tmp_path_factory):
     """(evaluation Trajectories, runner episodes) of member 0 on N uniform goals."""
-    from deploy.export import export
+    from deploy.sim.export import export
     cfg, params, goals, throws, tr = runner_vs_eval.evaluation(RUN, 0, N, seed=7)
     out = export(params, cfg.policy, cfg.world, str(tmp_path_factory.mktemp("parity") / "policy"),
                  source="tiny_run_v0@member0")

@@ -18,7 +18,7 @@ from training.seeds import SeedRuns, check_one_batch, pick_seed, seed_configs
 from training.trainer import Run
 from ttmjx.world import thrower
 from ttmjx.world.backends import Backend
-from ttmjx.world.goals import uniform_goals
+from ttmjx.world.env import uniform_goals
 
 # Per-iteration numbers that depend on the machine's speed or on the batch itself.
 NOT_COMPARED = ("seconds", "seeds_in_program")
@@ -160,7 +160,7 @@ def test_arms_that_differ_only_in_their_demonstrations_share_one_program(tmp_pat
     and differ only in their starting pools, so their 2 x 3 seeds are one program; d0 (no
     demonstrations, no pretraining) is another."""
     from eval import ablate
-    from eval.cells import seed_groups
+    from eval.table_cells import seed_groups
     cells = ablate.plan("demos", "full", 2, str(tmp_path / "abl"))
     groups = [sorted(c.name for c in g) for g in seed_groups(cells, str(tmp_path / "abl" / "results"))]
     assert groups == [["d0-seed0", "d0-seed1"],

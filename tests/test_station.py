@@ -11,10 +11,20 @@ import jax
 import numpy as np
 import pytest
 
-from deploy import (BallTracker, Clock, Contract, Mode, Robot, Runner, Violations, count_violations,
-                    load_episode, load_export)
-from deploy.export import export
-from deploy.station import SimClock, SimStation, complete_episode, play, run_sim
+from deploy.robot import (
+    BallTracker,
+    Clock,
+    Contract,
+    Mode,
+    Robot,
+    Runner,
+    Violations,
+    count_violations,
+    load_episode,
+    load_export,
+)
+from deploy.sim.export import export
+from deploy.sim.station import SimClock, SimStation, complete_episode, play, run_sim
 from models import PolicyConfig, identity_normalizer, init_params
 from training.data import relabel
 from ttmjx.world import observation, record
@@ -186,13 +196,13 @@ def test_robot_sweep_plays_every_point_and_its_zero_point_is_the_plain_run(tiny_
     goals and throws, the export verified and built once, the +0 point played once; saved as
     JSON and PNG; +0 ms is exactly the robot run at the trained timing (same seed); points
     beyond the trained range are marked."""
-    import deploy.station as station
-    from deploy.sweep import latency_sweep, sweep_table
+    import deploy.sim.station as station
+    from deploy.sim.sweep import latency_sweep, sweep_table
     goals = np.array([[0.7, 0.3], [0.4, -0.5]])
     loads = []
     real = station.load_for_station
     station_load = lambda *a, **k: loads.append(a) or real(*a, **k)  # noqa: E731
-    import deploy.sweep as sweep
+    import deploy.sim.sweep as sweep
     sweep.load_for_station, saved_fn = station_load, sweep.load_for_station
     try:
         out = latency_sweep(tiny_export, goals, str(tmp_path / "sweep"), [0, 50], seed=1, jitter_ms=[0, 2])

@@ -1,7 +1,7 @@
 """The one timing model (ttmjx.world.config.Timing): the training world's delayed observations and
 delayed commands are what the simulated station and the robot runner produce.
 
-* read: the world's per-sensor read equals the runner's interpolation (deploy.interp) of the
+* read: the world's per-sensor read equals the runner's interpolation (deploy.robot.interp) of the
   samples a station would have delivered, for random rates, latencies and read times;
 * commands: the world's per-physics-step targets equal the station's delayed ramps;
 * end to end: a trained policy evaluated in the world under the nominal profile (jitter off)
@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from deploy.interp import interpolate
+from deploy.robot.interp import interpolate
 from ttmjx.world import timing
 from ttmjx.world.config import TIMING_PROFILES, Timing, World
 
@@ -33,7 +33,7 @@ CFG = dataclasses.replace(World().with_throws("narrow"), timing=NOMINAL)
 
 
 def _reference(signal, j_now, avail, latency, every, phase, m_min, extrap_steps):
-    """The runner's value: deploy.interp over the samples delivered by `avail` (taken no later than j_now)."""
+    """The runner's value: deploy.robot.interp over the samples delivered by `avail` (taken no later than j_now)."""
     ms = [m for m in range(m_min, j_now + 1) if phase + m * every <= j_now and phase + m * every + latency <= avail
           and phase + m * every >= j_now - 200]
     times = np.array([phase + m * every for m in ms], float)
@@ -87,8 +87,8 @@ def test_dropped_samples_fall_back_to_older_ones():
 
 
 def test_world_commands_are_the_stations_delayed_ramps():
-    from deploy.contract import Contract
-    from deploy.station import SimStation
+    from deploy.robot.contract import Contract
+    from deploy.sim.station import SimStation
     cfg = dataclasses.replace(World(), timing=dataclasses.replace(NOMINAL, action_delay_s=0.023))
     st = SimStation(cfg, Contract(), timing=cfg.timing, q0=np.asarray(cfg.robot.home), ramp_s=cfg.control_dt)
     rng = np.random.default_rng(1)
@@ -109,9 +109,11 @@ def served(tmp_path_factory):
     """Evaluation under NOMINAL and the runner on a NOMINAL station, launches lined up."""
     sys.path.insert(0, os.path.join(ROOT, "scripts"))
     import runner_vs_eval
-    from deploy.export import export, export_world, load_export
-    from deploy.runner import Runner
-    from deploy.station import SimClock, SimStation, complete_episode
+
+    from deploy.robot.exported import export_world, load_export
+    from deploy.robot.runner import Runner
+    from deploy.sim.export import export
+    from deploy.sim.station import SimClock, SimStation, complete_episode
     from ttmjx.world.backends import Backend
     n, seed = 3, 7
     cfg, params, goals, throws, tr = runner_vs_eval.evaluation(RUN, 0, n, seed, timing=NOMINAL)
@@ -149,8 +151,8 @@ def test_the_world_under_nominal_timing_sees_and_sends_what_the_runner_does(serv
 
 
 def test_a_robot_run_is_reproducible_by_seed(tmp_path):
-    from deploy.export import export
-    from deploy.station import run_sim
+    from deploy.sim.export import export
+    from deploy.sim.station import run_sim
     from models.policy import member
     from training.checkpoint import load_checkpoint
     loaded = load_checkpoint(RUN)

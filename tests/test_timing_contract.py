@@ -15,9 +15,16 @@ import jax
 import numpy as np
 import pytest
 
-from deploy.export import CONTRACT_FILE, MANIFEST_FILE, export, load_export, read_contract
-from deploy.timing_check import (TimingError, check_station, outside_trained, station_timing,
-                                 timing_record, trained_timing)
+from deploy.robot.exported import CONTRACT_FILE, MANIFEST_FILE, load_export, read_contract
+from deploy.robot.timing_check import (
+    TimingError,
+    check_station,
+    outside_trained,
+    station_timing,
+    timing_record,
+    trained_timing,
+)
+from deploy.sim.export import export
 from models import PolicyConfig, identity_normalizer, init_params
 from training import runconfig
 from ttmjx.world import files
@@ -37,7 +44,7 @@ def exports(tmp_path_factory):
 
 def without_timing_record(src: str, dst: str) -> str:
     """A copy of an export as exported before issue #23: no `timing` section, manifest re-hashed."""
-    from deploy.export import write_manifest
+    from deploy.sim.export import write_manifest
     shutil.copytree(src, dst)
     doc = json.load(open(os.path.join(dst, CONTRACT_FILE)))
     del doc["timing"]
@@ -150,7 +157,7 @@ def test_robot_run_plays_the_trained_timing_by_default_and_says_when_overridden(
 
 
 def test_delays_added_to_an_ideal_timing_leave_it():
-    from deploy.timing_check import with_added
+    from deploy.robot.timing_check import with_added
     tm = with_added(IDEAL, tracker_latency_s=0.025)
     assert tm.tracker_latency_s == 0.025 and not tm.ideal and not tm.ideal_timing
 
@@ -170,8 +177,8 @@ def test_a_16_value_export_plays_with_the_trackers_velocity_and_its_extrapolatio
     """The GPU presets observe the ball velocity (16 values): their export plays on the station,
     the runner giving the slope of the tracker's two newest samples (what the training world's
     timing model shows), and following the line as far as the training world did."""
-    from deploy.episode_log import load_episode
-    from deploy.station import run_sim
+    from deploy.robot.episode_log import load_episode
+    from deploy.sim.station import run_sim
     from ttmjx.world import observation
     pcfg = PolicyConfig(hidden=8, layers=1, obs_size=16)
     params = init_params(jax.random.key(0), pcfg, identity_normalizer(16))

@@ -11,14 +11,14 @@ import time
 import jax
 import numpy as np
 import pytest
+import recorded  # noqa: E402
+from recorded import RECORDED_PRACTICE, assert_reproduces_a_recording, tiny_recorded
 
 from eval.evaluate import evaluate_uniform, training_evaluation
 from training import checkpoint, runconfig
 from training.pool import load_logs
 from training.trainer import Run, is_eval_iteration, practice_iterations, pretrain_iterations
 from training.update import acting_params
-import recorded  # noqa: E402
-from recorded import RECORDED_PRACTICE, assert_reproduces_a_recording, tiny_recorded
 from ttmjx.world import record
 
 DATA = os.path.join(os.path.dirname(__file__), "data")
@@ -65,7 +65,7 @@ def trained(recorded_tiny_run):
 def return_rate(run: Run, params, n: int = 64) -> float:
     """Fraction of n narrow throws the policy returns to the opponent's half (uniform goals)."""
     from eval.evaluate import rollout_goals
-    from ttmjx.world.goals import uniform_goals
+    from ttmjx.world.env import uniform_goals
     goals = np.asarray(uniform_goals(jax.random.PRNGKey(11), n, run.cfg.world.table))
     tr = rollout_goals(run.cfg.world, run.cfg.policy, params, run.backend, jax.random.PRNGKey(12), goals,
                        members=run.cfg.train.members)
@@ -320,6 +320,7 @@ def test_a_full_disk_at_any_write_loses_nothing(trained, demo_dir, tmp_path, mon
     its `fail_at`-th call: the run stops with the OSError, and the same command resumes to the
     uninterrupted result."""
     import errno
+
     from ttmjx.world import files
     full_dir, _ = trained
     cfg = tiny(demo_dir, tmp_path / f"full{fail_at}")

@@ -255,7 +255,7 @@ def test_bad_input_errors_name_the_field(c_backend):
     with pytest.raises(ValueError, match="unknown throw distribution 'wide'"):
         CFG.with_throws("wide")
     th = hand_throws([1.7, 0.2, 0.95], [-6.5, -0.2, 1.0])
-    with pytest.raises(ValueError, match=r"goals must have shape \[B, 2\]"):
+    with pytest.raises(ValueError, match=r"goals of shape \(1, 3\); expected \[N, 2\]"):
         c_backend.reset(jax.random.PRNGKey(0), th, np.zeros((1, 3)))
     with pytest.raises(ValueError, match="not finite"):
         c_backend.reset(jax.random.PRNGKey(0), th, np.array([[np.nan, 0.0]]))

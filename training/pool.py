@@ -18,7 +18,7 @@ from ttmjx.tools import demos
 from ttmjx.world import observation, record, thrower
 from ttmjx.world.backends import Backend, resolve_backend
 from ttmjx.world.config import World
-from ttmjx.world.goals import uniform_goals
+from ttmjx.world.env import uniform_goals
 
 
 def load_demos(cfg: RunConfig, progress: bool) -> record.Trajectories | None:

@@ -30,7 +30,8 @@ from training.update import TrainState, acting_params, make_train_loop, state_sh
 from ttmjx.world import thrower
 from ttmjx.world.backends import Backend, backend_kind
 from ttmjx.world.config import World
-from ttmjx.world.goals import goal_stats, uniform_goals
+from ttmjx.world.env import uniform_goals
+from ttmjx.world.goals import goal_stats
 from ttmjx.world.record import Trajectories
 
 
@@ -91,8 +92,8 @@ def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, thro
 
 
 # Throws are solved for this many rounds at once. Solving launch velocities is a sequential loop
-# through the flight (ttmjx.world.thrower): on a GPU it takes as long for 16k throws as for 1k
-# (0.57 s for 1,000 and 0.82 s for 16,000 on an H100, scripts/profile_practice.py).
+# through the flight (ttmjx.world.thrower): on a GPU it takes about as long for 16k throws as for
+# 1k (docs/BENCHMARKS.md, scripts/profile_practice.py).
 THROW_BLOCK = 16
 THROW_STREAM = 0x7E40   # fold-in tag that separates the throw keys from the per-round keys
 
@@ -101,7 +102,7 @@ def over_seeds(fn, backend: str):
     """fn(state, cache, key) of one run -> the same over a leading seed axis. On an accelerator a
     vmap (one wider program). On MuJoCo C's CPU a loop over the seeds inside the program: the
     updates already keep the cores busy, and XLA:CPU's batched matrix products were slower than
-    the seeds one after another (3 seeds: 13.4 s against 3 x 3.5 s per round, docs/BENCHMARKS.md)."""
+    the seeds one after another (docs/BENCHMARKS.md)."""
     if backend_kind(backend).traceable:
         return jax.vmap(fn)
     return lambda state, cache, key: jax.lax.map(lambda a: fn(*a), (state, cache, key))

@@ -139,9 +139,9 @@ def paper_sim() -> RunConfig:
         policy=PolicyConfig(kind="lstm", hidden=1024, layers=2, obs_size=16),
         train=TrainConfig(window=96, batch_size=64, learning_rate=1e-4, members=1, capacity=131_072,
                           ema_decay=0.995),
-        # A rollout on MJX is latency-bound (1,000 episodes take 4.1 s on an H100, about as long as
-        # 4,000), so rounds are large: 4,000 episodes then 200 updates, the paper's ratio of
-        # updates to trajectories kept from our earlier S=50, M=1000.
+        # A rollout on MJX is latency-bound (1,000 episodes take about as long as 4,000:
+        # docs/BENCHMARKS.md), so rounds are large: 4,000 episodes then 200 updates (the paper
+        # publishes no ratio of updates to trajectories; docs/RESULTS.md).
         # The striker: the shipped `paper` bootstrap is built
         # for narrow throws only (ttmjx demos --source paper --rebuild all --distribution any).
         demos=3600, demo_source="striker", pretrain_steps=2000, steps_between_ssp=200, episodes_per_ssp=4000,
@@ -152,12 +152,10 @@ def paper_sim_new() -> RunConfig:
     """"New Results": frame-stacked observations, action noise during practice and a 10-member
     ensemble sharing one pool; 100k trajectories.
 
-    The frames carry the ball velocity ([8, 16], as the LSTM preset's 16 values): with the
-    paper's [8, 13] (positions only) GCBC on any-ball throws lands 3% within 30 cm and hits 31%;
-    with the velocity, 23% and 74% (docs/RESULTS.md). The paper's action noise is off: at
-    b = 0.05 it held this run at 25% within 30 cm where b = 0 reached 57%, but that was the old
-    form (a + z with the true joints observed), which the closed loop integrated into a drift of
-    tens of |z|. The noise is now a hidden calibration offset (models.policy.with_action_noise);
+    The frames carry the ball velocity ([8, 16], as the LSTM preset's 16 values): without it GCBC
+    on any-ball throws hits far fewer balls (docs/RESULTS.md). The paper's action noise is off by
+    default: its first form (a + z with the true joints observed) was integrated by the closed
+    loop into a drift; the noise is now a hidden calibration offset (models.policy.with_action_noise);
     `ttmjx ablate noise` measures that form (--train.action-noise B turns it on)."""
     return RunConfig(
         preset="paper-sim-new",

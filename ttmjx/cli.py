@@ -1,5 +1,7 @@
-"""`ttmjx`: the command line, on top of every package (world -> tools -> models -> training ->
-eval -> deploy -> here; nothing imports this module).
+"""`ttmjx`: the simulator side's command line, on top of every package (world -> tools -> models
+-> training -> eval -> deploy/robot -> deploy/sim -> here; only the console script's entry,
+ttmjx/entry.py, imports it). The robot side's commands (`robot run`, `robot bench`) are defined
+in deploy/robot/cli.py and listed here too.
 
 Every subcommand is a row of COMMANDS (at the bottom): its arguments (a frozen dataclass whose
 fields are its flags; `ttmjx CMD --help` lists each with its type, default and meaning, nested
@@ -9,25 +11,22 @@ as null). Bad input exits 2 with one line, `ttmjx CMD: error: ...`.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 import json
 import os
-import re
 import sys
-from typing import Annotated, Any, Callable, ClassVar, Literal, NamedTuple, NoReturn
+from typing import Annotated, ClassVar, Literal
 
 import tyro
 
-from deploy.cli import STATIONS
+from deploy.robot import cli as robot_side
+from ttmjx import commandline
+from ttmjx.commandline import Command, Flag, Report, check_new_path, fail, parse_args, report, table
 from eval.ablate import ABLATION_NAMES, SCALE_NAMES
 from training.baselines.config import ESConfig, PPOConfig, RewardConfig, SACConfig
 from training.runconfig import PRESET_NAMES, RunConfig, preset
 from ttmjx.world.config import CONTROL_RATES, THROW_DISTRIBUTIONS, World
-from ttmjx.world.files import json_safe
 
-Flag = Annotated[bool, tyro.conf.FlagCreatePairsOff]   # a bare --flag, off by default
 Backend = Literal["c", "mjx"]
 
 
@@ -38,58 +37,6 @@ DatasetPath = Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="DIR")]
 # --------------------------------------------------------------------------------------------
 # Arguments: one frozen dataclass per subcommand; field docstrings are the --help lines.
 # --------------------------------------------------------------------------------------------
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class Report:
-    json: Flag = False
-    """Print one JSON object as the last line (non-finite numbers as null)."""
-
-    # {field: (lowest, highest or None)} checked when the arguments are built, before any work.
-    BOUNDS: ClassVar[dict] = {}
-    # Fields naming a file or directory this command creates: refused up front if it exists as
-    # the other kind (a file where a directory goes, or the reverse).
-    NEW_DIRS: ClassVar[tuple] = ()
-    NEW_FILES: ClassVar[tuple] = ()
-
-    def __post_init__(self):
-        if isinstance(getattr(self, "seed", None), int):
-            check_range("seed", self.seed, 0, 2 ** 32 - 1)    # seeds outside wrap onto others
-        for name, (low, high) in self.BOUNDS.items():
-            check_range(name, getattr(self, name), low, high() if callable(high) else high)
-        for name in self.NEW_DIRS:
-            check_new_path(name, getattr(self, name), want_dir=True)
-        for name in self.NEW_FILES:
-            check_new_path(name, getattr(self, name), want_dir=False)
-
-
-def check_range(name: str, value, low, high) -> None:
-    """ValueError naming the flag, the value and the expected range (None values are unset)."""
-    if value is None:
-        return
-    flag = "--" + name.replace("_", "-")
-    if isinstance(value, float) and value != value:
-        raise ValueError(f"{flag} is NaN; expected a number >= {low}")
-    if value < low or (high is not None and value > high):
-        expected = f">= {low}" if high is None else f"between {low} and {high}"
-        raise ValueError(f"{flag} {value}: expected {expected}")
-
-
-def check_new_path(name: str, path: str | None, want_dir: bool) -> None:
-    flag = "--" + name.replace("_", "-")
-    if path is None:
-        return
-    if want_dir and os.path.isfile(path):
-        raise ValueError(f"{flag} {path!r} is a file; expected a new directory")
-    if want_dir and os.path.isdir(path) and os.listdir(path):
-        raise ValueError(f"{flag} {path!r} already holds files; expected a new or empty directory")
-    if not want_dir and os.path.isdir(path):
-        raise ValueError(f"{flag} {path!r} is a directory; expected a file path")
-    parent = os.path.dirname(os.path.abspath(path))
-    while not os.path.exists(parent):
-        parent = os.path.dirname(parent)
-    if not os.path.isdir(parent) or not os.access(parent, os.W_OK):
-        raise ValueError(f"{flag} {path!r}: cannot write under {parent!r} (not a writable directory)")
-
-
 def batch_limit() -> int:
     """Most episodes one command may simulate at once: half the device memory (training/budget.py)."""
     from training.budget import episodes_that_fit
@@ -358,56 +305,6 @@ class ExportArgs(Report):
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class RobotRunArgs(Report):
-    """Play an exported policy toward goals on a station and log the episodes."""
-    BOUNDS: ClassVar[dict] = {"n": (1, 100_000), "stale_ms": (0.1, 10_000.0)}
-    policy: str
-    """An export directory (ttmjx export --out)."""
-    station: Literal[STATIONS]
-    """sim: MuJoCo C physics and the thrower; fake: simple kinematics; cell: the drivers (--config)."""
-    goals: str
-    """'x,y;x,y', a goal file (.json/.npy/.csv/.txt), 'five' (goals A-E) or 'uniform'."""
-    n: int = 1
-    """Attempts per goal ('uniform': the number of goals)."""
-    out: str | None = None
-    """Directory for the episode logs (ttmjx train --data reads them), new or empty; the same command
-    on it again resumes an unfinished session (or reports the finished one); None: no logs."""
-    seed: int = 0
-    """Seed of the throws (and of uniform goals)."""
-    distribution: Literal[THROW_DISTRIBUTIONS] | None = None
-    """Throws; None: the export's training world."""
-    stale_ms: float = 100.0
-    """Joint or ball data older than this (ms) -> hold."""
-    realtime: Flag = False
-    """Pace on the real clock."""
-    charge_compute: Flag = False
-    """sim: charge the runner's own computation time to the simulated clock (then two runs with
-    the same seed can differ by the machine's speed); off: runs are reproducible by seed."""
-    timing: str | None = None
-    """sim: sensor and actuation timing of the station; None (or export): the timing the policy was
-    trained under (the export's contract), each throw drawing its latencies and command delay
-    within the trained ranges as a cell's drift; centre: that timing fixed at its centre; or a
-    profile of ttmjx.world.config.TIMING_PROFILES: nominal (tracker 125 Hz, 10 ms; joints 250 Hz,
-    4 ms; commands 8 ms) or zero (ideal). A timing outside the trained range is refused."""
-    allow_untrained_timing: Flag = False
-    """sim: play a station timing outside the range the policy was trained under (the summary says so)."""
-    config: str | None = None
-    """cell: the cell config (TOML: EGM, gantry Modbus, tracker, launcher; docs/ROBOT.md)."""
-
-    def __post_init__(self):
-        super().__post_init__()
-        if self.config is not None and self.station != "cell":
-            raise ValueError(f"--config {self.config!r} configures the cell station; --station is {self.station!r} "
-                             "(drop --config, or use --station cell)")
-        sim_only = [flag for flag, given in (("--timing", self.timing is not None),
-                                             ("--allow-untrained-timing", self.allow_untrained_timing),
-                                             ("--charge-compute", self.charge_compute)) if given]
-        if sim_only and self.station != "sim":
-            raise ValueError(f"{sim_only[0]} sets the simulated station's timing; --station is {self.station!r} "
-                             "(drop it, or use --station sim)")
-
-
-@dataclasses.dataclass(frozen=True, kw_only=True)
 class RobotSweepArgs(Report):
     """Strict success of an exported policy on the simulated station against added latency of the
     ball tracker, of the commands, added jitter, and all three together (the export verified and
@@ -468,53 +365,19 @@ class RobotServeArgs(Report):
     allow_untrained_timing: Flag = False
     """Serve a station timing outside the range the policy was trained under (the summary says so)."""
     faults: str = ""
-    """Injected faults, e.g. 'egm.loss=0.05,modbus.delay_ms=10' (deploy/serve.py FAULT_KINDS)."""
+    """Injected faults, e.g. 'egm.loss=0.05,modbus.delay_ms=10' (deploy/sim/serve.py FAULT_KINDS)."""
     egm_hz: float = 250.0
     """EGM cycle rate of the simulated controller."""
     duration_s: float | None = None
     """Stop after this many seconds; None: until interrupted."""
 
 
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class RobotBenchArgs(Report):
-    """Step latency of the numpy or ONNX policy on one CPU core (the robot side's budget; docs/BENCHMARKS.md)."""
-    BOUNDS: ClassVar[dict] = {"hidden": (1, 8192), "layers": (1, 16), "members": (1, 64), "steps": (1, 10**6),
-                              "threads": (1, 1024), "frame_stack": (1, 64)}
-    engine: Literal["numpy", "onnx"] = "numpy"
-    """numpy (deploy/numpy_policy.py) or the ONNX graph on onnxruntime (deploy/onnx_policy.py; the `onnx` extra)."""
-    kind: Literal["lstm", "framestack"] = "lstm"
-    """Policy type."""
-    obs_size: Literal[13, 16] = 13
-    """Values per frame: 13 (the robot's) or 16 (with the ball velocity, the paper-sim presets)."""
-    frame_stack: int = 8
-    """Frames of the frame-stack MLP's input."""
-    hidden: int = 1024
-    """Units per layer."""
-    layers: int = 2
-    """LSTM cells or MLP hidden layers."""
-    members: int = 1
-    """Ensemble members."""
-    steps: int = 2000
-    """Timed policy steps."""
-    threads: int = 1
-    """BLAS threads (numpy) or onnxruntime intra-op threads."""
+
 
 
 # --------------------------------------------------------------------------------------------
 # Commands
 # --------------------------------------------------------------------------------------------
-def report(args: Report, obj: dict, text: str) -> None:
-    """Print `text`, or with --json `obj` as one line of valid JSON (non-finite -> null)."""
-    print(json.dumps(json_safe(obj), allow_nan=False) if args.json else text)
-
-
-def table(obj: dict, skip: tuple = ()) -> str:
-    """key  value lines (floats to 4 significant digits)."""
-    width = max((len(k) for k in obj), default=0)
-    return "\n".join(f"{k:{width}s}  {v:.4g}" if isinstance(v, float) else f"{k:{width}s}  {v}"
-                     for k, v in obj.items() if k not in skip)
-
-
 def throw(a: ThrowArgs) -> None:
     from ttmjx.world import thrower
     rep = thrower.throw_report(a.world(), a.n, a.seed)
@@ -721,7 +584,8 @@ def baseline(a: BaselineArgs) -> None:
 
 
 def export(a: ExportArgs) -> None:
-    from deploy.export import export_checkpoint, load_export
+    from deploy.robot.exported import load_export
+    from deploy.sim.export import export_checkpoint
     from training.seeds import pick_seed
     path = export_checkpoint(pick_seed(a.checkpoint, a.seed_index), a.out, step=a.step, member=a.member,
                              ensemble=a.ensemble or a.member is None,
@@ -740,39 +604,19 @@ def export(a: ExportArgs) -> None:
             if graph else "no ONNX graph (pip install 'ttmjx[onnx]' for one)"))
 
 
-def robot_run(a: RobotRunArgs) -> None:
-    from deploy.goals import session_goals
-    from deploy.runner import RunnerConfig
-    from deploy.cli import play
-    goals = session_goals(a.goals, a.n, a.seed)
-    config = RunnerConfig(stale_s=a.stale_ms / 1000.0)
-    if a.station == "cell":
-        from deploy.export import read_contract
-        from deploy.timing_check import trained_timing
-        trained_timing(read_contract(a.policy), a.policy)   # an export without a timing record is refused
-    # --out: a new directory, or this command's own session: resumed if unfinished (deploy/cli.py play)
-    out = play(a.station, a.policy, goals, a.out, config, seed=a.seed, distribution=a.distribution,
-               timing=a.timing, allow_untrained=a.allow_untrained_timing, realtime=a.realtime,
-               charge_compute=a.charge_compute, cell_config=a.config,
-               log=lambda m: print(f"ttmjx robot run: {m}", file=sys.stderr))
-    m = out.get("metrics", {})
-    from deploy.timing_check import timing_line
-    tm = out.get("timing") or {}
-    report(a, out, f"{out['episodes']}/{out['goals']} episodes; " +
-           (f"within 30 cm {m.get('within_30cm', 0):.1%}, 20 cm {m.get('within_20cm', 0):.1%}, "
-            f"hit rate {m.get('hit_rate', 0):.0%}; " if m else "") +
-           (f"timing {tm['source']}{' (inside the trained range)' if tm['within_trained'] else ''}; "
-            if tm else "") +
-           f"faults {out['faults']}; logs in {out['out']}" +
-           (f"\n{timing_line(tm)}" if tm and not tm["within_trained"] else ""))
-    if out["episodes"] != out["goals"]:
-        sys.exit(1)
+def sim_station(*args, **kwargs) -> dict:
+    """A session on the simulated station (deploy.sim.station.run_sim), which `ttmjx robot run
+    --station sim` plays on: the robot side's command is handed it from here, and never imports
+    the simulator side."""
+    from deploy.sim.station import run_sim
+    return run_sim(*args, **kwargs)
 
 
 def robot_sweep(a: RobotSweepArgs) -> None:
-    from deploy.goals import session_goals
     import numpy as np
-    from deploy.sweep import latency_sweep, parse_series, sweep_table
+
+    from deploy.robot.goals import session_goals
+    from deploy.sim.sweep import latency_sweep, parse_series, sweep_table
     series = parse_series(a.series)
     goals = session_goals("uniform", a.n, a.seed)
     out = latency_sweep(a.policy, goals, a.out, np.linspace(0.0, a.max_ms, a.points), a.seed, a.timing,
@@ -781,20 +625,20 @@ def robot_sweep(a: RobotSweepArgs) -> None:
 
 
 def robot_serve(a: RobotServeArgs) -> None:
-    from deploy.contract import contract_from_world
-    from deploy.drivers.config import load_cell_config
-    from deploy.serve import check_ports, make_station, parse_faults, serve
+    from deploy.robot.contract import contract_from_world
+    from deploy.robot.drivers.config import load_cell_config
+    from deploy.sim.serve import check_ports, make_station, parse_faults, serve
     cell = load_cell_config(a.config)
     faults = parse_faults(a.faults)
     check_ports(cell)                  # before the station's slow start
     timing_info = None
     if a.policy is not None:
-        from deploy.station import load_for_station, resolve_timing
+        from deploy.sim.station import load_for_station, resolve_timing
         loaded = load_for_station(a.policy, a.distribution)   # its timing record is required
         cfg, contract = loaded.cfg, loaded.contract
         timing, timing_info = resolve_timing(loaded, a.timing, a.allow_untrained_timing)
     else:
-        from deploy.timing_check import TimingError
+        from deploy.robot.timing_check import TimingError
         from ttmjx.world.config import TIMING_PROFILES
         name = a.timing or "nominal"
         if name not in TIMING_PROFILES:
@@ -806,33 +650,12 @@ def robot_serve(a: RobotServeArgs) -> None:
             cfg = cfg.with_throws(a.distribution)
     station = make_station(cfg, contract, a.seed, timing)
     if timing_info is not None and not timing_info["within_trained"]:
-        from deploy.timing_check import timing_line
+        from deploy.robot.timing_check import timing_line
         print(f"ttmjx robot serve: warning: {timing_line(timing_info)}", file=sys.stderr, flush=True)
     out = serve(cell, station, faults, egm_hz=a.egm_hz, seed=a.seed, duration_s=a.duration_s)
     if timing_info is not None:
         out["timing"] = timing_info
     report(a, out, table({k: json.dumps(v) for k, v in out.items()}))
-
-
-def robot_bench(a: RobotBenchArgs) -> None:
-    from deploy.policy_bench import benchmark
-    out = benchmark(a.kind, a.hidden, a.layers, a.members, steps=a.steps, threads=a.threads,
-                    engine=a.engine, obs_size=a.obs_size, frame_stack=a.frame_stack)
-    shape = f"[{a.frame_stack}, {a.obs_size}]" if a.kind == "framestack" else f"[{a.obs_size}]"
-    text = (f"{a.engine} {a.kind} {a.layers}x{a.hidden} x{a.members}, input {shape}, on {a.threads} thread(s), "
-            f"core {out['cpu']}: step p50 {out['p50_ms']:.3f} ms, p99 {out['p99_ms']:.3f} ms, "
-            f"max {out['max_ms']:.3f} ms")
-    if "prepared_p50_ms" in out:
-        text += (f"; after prepare(): p50 {out['prepared_p50_ms']:.3f} ms, p99 "
-                 f"{out['prepared_p99_ms']:.3f} ms (prepare p50 {out['prepare_p50_ms']:.3f} ms)")
-    report(a, out, text)
-
-
-class Command(NamedTuple):
-    args: type                                   # frozen dataclass: its fields are the flags
-    run: Callable[[Any], None]                   # does the work and prints
-    help: str                                    # one line for `ttmjx --help`
-    parse: Callable[[list[str]], Any] | None = None   # instead of tyro on `args`' own defaults
 
 
 COMMANDS: dict[str, Command] = {
@@ -848,118 +671,16 @@ COMMANDS: dict[str, Command] = {
     "ablate": Command(AblateArgs, ablate, "a paper ablation: cells of (variant, seed) runs -> table, curves, landing maps"),
     "baseline": Command(BaselineArgs, baseline, "Table I: RL baselines (brax PPO, SAC, ES), GCSL, LFP and GoalsEye -> table, curves"),
     "export": Command(ExportArgs, export, "safetensors weights + contract + golden self-test + ONNX graph for the robot runner"),
-    "robot run": Command(RobotRunArgs, robot_run, "the robot runner: play an exported policy on a station"),
+    "robot run": robot_side.COMMANDS["robot run"]._replace(run=lambda a: robot_side.robot_run(a, sim_station)),
     "robot sweep": Command(RobotSweepArgs, robot_sweep, "strict success against added ball and command latency"),
     "robot serve": Command(RobotServeArgs, robot_serve, "serve the simulated station over EGM, Modbus TCP and UDP (rehearsal)"),
-    "robot bench": Command(RobotBenchArgs, robot_bench, "numpy or ONNX policy step latency on one CPU core"),
+    "robot bench": robot_side.COMMANDS["robot bench"],
 }
 
 
 # --------------------------------------------------------------------------------------------
-# Parsing and errors
+# Running a command
 # --------------------------------------------------------------------------------------------
-FLAG_PREFIX = {"RunConfig": "--", "TrainConfig": "--train.", "PolicyConfig": "--policy.", "Robot": "--world.robot.",
-               "Throws": "--world.throws.", "Timing": "--world.timing."}
-
-
-def fail(name: str, message: str, code: int = 2) -> NoReturn:
-    """One line on stderr and exit `code` (2: bad input; 1: the work itself failed)."""
-    if name == "train":            # a config's own message names its field: name the flag
-        message = re.sub(r"\b(RunConfig|TrainConfig|PolicyConfig|Robot|Throws|Timing)\.(\w+)=?",
-                         lambda m: FLAG_PREFIX[m[1]] + m[2].replace("_", "-") + " ", message)
-    print(f"ttmjx{' ' + name if name else ''}: error: {' '.join(message.split())}", file=sys.stderr)
-    sys.exit(code)
-
-
-def file_error(e: OSError) -> str:
-    """'PATH: cause' of a failed file operation. A write through an open file (numpy's savez, a
-    stream) raises without the file's name: it is then the path the project's innermost frame
-    was writing (its local `path`, `tmp`, ...), so a full disk always names where."""
-    where = e.filename or culprit_path(e.__traceback__)
-    return f"{where}: {e.strerror or e}" if where else f"{e.strerror or e}"
-
-
-PROJECT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def culprit_path(tb) -> str | None:
-    frames = []
-    while tb is not None:
-        frames.append(tb.tb_frame)
-        tb = tb.tb_next
-    for frame in reversed(frames):          # innermost first
-        code = os.path.abspath(frame.f_code.co_filename)
-        if not code.startswith(PROJECT) or os.sep + "site-packages" + os.sep in code:
-            continue
-        for name in ("path", "tmp", "filename", "file", "out", "out_dir", "directory", "run_dir"):
-            value = frame.f_locals.get(name)
-            if isinstance(value, str) and value:
-                return value
-    return None
-
-
-def one_line(box: str) -> str:
-    """tyro's boxed error as one line: the message section, without the title ('Value error'),
-    borders, rules, colours or the closing 'For full helptext' hint (rich draws the box in
-    unicode on a terminal and in ASCII when the streams are captured)."""
-    sections, current = [], []
-    for line in re.sub(r"\x1b\[[0-9;]*m", "", box).splitlines():
-        line = line.strip()
-        if line.startswith(("╭", "╰")):
-            continue
-        line = line.strip("│|").strip()
-        if line and set(line) <= set("─-━═+"):
-            sections.append(current)
-            current = []
-        elif line:
-            current.append(line)
-    sections.append(current)
-    if "╭" not in box:
-        sections = sections[1:]          # the ASCII box's title ('Value error') above its first rule
-    sections = [s for s in sections if s and not s[0].startswith("For full helptext")]
-    text = " ".join(sections[0]) if sections else ""
-    # A bound checked by an argument class or a config: tyro prefixes its message with where.
-    return re.sub(r"^Error parsing [\w.]+: ", "", text) or box
-
-
-def parse_args(name: str, cls: type, argv: list[str], default: Any = None) -> Any:
-    """tyro on `cls` (starting from `default` if given); a parse error exits 2 with one line."""
-    err = io.StringIO()
-    try:
-        with contextlib.redirect_stderr(err):
-            args = tyro.cli(cls, args=argv, prog=f"ttmjx {name}",
-                            **({} if default is None else {"default": default}))
-    except SystemExit as e:
-        if e.code == 2:
-            fail(name, one_line(err.getvalue()))
-        sys.stderr.write(err.getvalue())
-        raise
-    sys.stderr.write(err.getvalue())
-    return args
-
-
-def usage(group: str = "") -> str:
-    names = [n for n in COMMANDS if n.startswith(group)]
-    width = max(map(len, names))
-    return "\n".join([f"usage: ttmjx {group or 'COMMAND'}{' COMMAND' if group else ''} [--help] [OPTIONS]",
-                      "", "commands:", *(f"  {n:{width}s}  {COMMANDS[n].help}" for n in names), "",
-                      "`ttmjx COMMAND --help` lists every option with its type, default and meaning."])
-
-
-def command_of(argv: list[str]) -> tuple[str, list[str]]:
-    """(subcommand name, its arguments); `ttmjx [GROUP] --help` prints the table and exits."""
-    for k in (2, 1):
-        if " ".join(argv[:k]) in COMMANDS:
-            return " ".join(argv[:k]), argv[k:]
-    group = argv[0] if argv and any(n.startswith(argv[0] + " ") for n in COMMANDS) else ""
-    rest = argv[1:] if group else argv
-    if rest[:1] in (["-h"], ["--help"]):
-        print(usage(group))
-        sys.exit(0)
-    expected = ", ".join(n.removeprefix(group).strip() for n in COMMANDS if n.startswith(group))
-    fail(group, f"{'unknown command ' + repr(rest[0]) if rest else 'no command'}; expected one of {expected}")
-
-
 def enable_compile_cache():
     """JAX's persistent compilation cache: compiled rollouts and training steps are reused
     across runs (first compiles take tens of seconds on a CPU)."""
@@ -969,54 +690,16 @@ def enable_compile_cache():
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
-class Stopped(BaseException):
-    """SIGTERM outside a training loop (whose own handler saves a checkpoint and stops it at the
-    end of the iteration, training/trainer.py): the command ends as after Ctrl-C, with 143."""
-    def __init__(self, signum: int):
-        super().__init__(signum)
-        self.signum = signum
-
-
-@contextlib.contextmanager
-def stop_on_sigterm():
-    """SIGTERM raises Stopped (a KeyboardInterrupt's counterpart) while the command runs, so it
-    unwinds like Ctrl-C: outputs written through a temporary name stay whole or absent, what was
-    saved (checkpoints, episode logs) stays, and main exits 143 with one line."""
-    import signal
-    import threading
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, frame):
-        raise Stopped(signum)
-    old = signal.signal(signal.SIGTERM, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, old)
+def prepare() -> None:
+    """Before parsing: JAX's distributed start when several processes run (presets probe the
+    devices), and the persistent compilation cache."""
+    from training.mesh import initialize_distributed
+    initialize_distributed()
+    enable_compile_cache()
 
 
 def main(argv: list[str] | None = None) -> None:
-    from training.mesh import initialize_distributed
-    name, rest = command_of(sys.argv[1:] if argv is None else list(argv))
-    cmd = COMMANDS[name]
-    try:
-        with stop_on_sigterm():
-            initialize_distributed()   # several processes: before JAX's first computation (presets probe devices)
-            args = cmd.parse(rest) if cmd.parse else parse_args(name, cmd.args, rest)
-            enable_compile_cache()
-            cmd.run(args)
-    except Stopped:
-        fail(name, "stopped by SIGTERM; what was saved is kept: run the same command to resume", code=143)
-    except (ValueError, FileExistsError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as e:
-        fail(name, str(e) if not isinstance(e, OSError) or not e.strerror else file_error(e))
-    except OSError as e:          # permission denied, disk full: the environment, not the input
-        fail(name, file_error(e), code=1)
-    except (RuntimeError, ArithmeticError) as e:   # e.g. training.trainer.NonFiniteError
-        fail(name, f"{type(e).__name__}: {e}", code=1)
-    except KeyboardInterrupt:
-        fail(name, "stopped by SIGINT (Ctrl-C); what was saved is kept: run the same command to resume", code=130)
+    commandline.run(COMMANDS, sys.argv[1:] if argv is None else list(argv), prepare)
 
 
 if __name__ == "__main__":

@@ -49,12 +49,11 @@ import_mjx()   # brax imports mujoco.mjx: first without the optional Warp backen
 from brax.envs.base import Env, State, Wrapper  # noqa: E402
 from brax.envs.wrappers.training import EpisodeWrapper, VmapWrapper  # noqa: E402
 
+from training.baselines.config import RewardConfig  # noqa: E402
 from ttmjx.world import env as task  # noqa: E402
 from ttmjx.world import thrower  # noqa: E402
 from ttmjx.world.config import World  # noqa: E402
-from ttmjx.world.goals import uniform_goals  # noqa: E402
-from training.baselines.config import RewardConfig  # noqa: E402
-
+from ttmjx.world.env import uniform_goals  # noqa: E402
 
 TERMS = ("r_goal", "r_hit", "r_opponent", "r_pose", "r_smooth")
 

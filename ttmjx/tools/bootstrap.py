@@ -27,7 +27,7 @@ import numpy as np
 
 from ttmjx.world import backends, files, observation
 from ttmjx.world.config import World
-from ttmjx.world.goals import uniform_goals
+from ttmjx.world.env import uniform_goals
 
 ASSETS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "assets")
 WEIGHTS_NAME = "paper_policy.safetensors"

@@ -118,7 +118,7 @@ def impact_states(cfg: World, surface: str, normal_speeds, phases) -> tuple[np.n
 # --- running -----------------------------------------------------------------------------------
 # MJX runs are jit-compiled once for a fixed shape, [MJX_BATCH] throws x MJX_CHUNK control steps,
 # and chained: every experiment here (1 s of flight, 40 ms impacts) reuses that one program
-# (compiling a batched MJX step takes ~20-40 s on a CPU).
+# (compiling a batched MJX step is slow on a CPU).
 MJX_BATCH = 128
 MJX_CHUNK = 4
 IMPACT_CONTROL_STEPS = 4   # 40 ms: lead-in, the slowest (2 m/s) contact and the way out

@@ -82,14 +82,9 @@ class Perturbation:
       and j6 0.15-0.18 m obliquely: together they spread the landings both ways. The gantry (a
       translation, 2.5 m of landing per m) and j4 (0.04 m per 0.05 rad) matter less; j3 acts
       as j2.
-    - offset (rad, half-widths of the uniform draw): scaled as one vector (0.75x, 1x, 1.25x of
-      the default, 200 narrow throws each) for the landings on the opponent's half to spread
-      like goals uniform on it (std 0.40 m along x, 0.44 m across) while most balls still land
-      there. At 1x: std 0.22 m along, 0.35 m across (unperturbed: 0.06 and 0.01), 84% on the
-      half, 95% of its area within 30 cm of a landing; 0.75x: 0.18 / 0.29 m, 93%; 1.25x: 0.22 /
-      0.39 m but 65% (more balls into the net and long; more offset on j2 alone, 0.16 rad, did
-      not widen the spread along x either: 0.23 m, 72% on the half). Landings along x are bounded
-      by the net and the far edge, so their spread stays below the uniform goals'.
+    - offset (rad, half-widths of the uniform draw): scaled as one vector so that the landings
+      spread toward goals uniform on the opponent's half while most balls still land there
+      (the measurements: docs/DESIGN.md, "Measurements behind the code").
 
     These sizes were chosen for the `striker` source, which receives the offset on its commands
     with the true joints observed (`perturbed`); `es` and `paper` receive the same sizes as a
@@ -122,10 +117,8 @@ def perturbed(policy: backends.Policy, pert: Perturbation, hidden: bool = False)
     joints moved back by the offset (as models.policy.with_joint_offset), so it plays its usual
     stroke and the executed one is that stroke moved by the offset. A learned policy whose
     targets follow its observed joints (the imitation policies of `paper`) integrates an offset
-    it can see into a drift: on 300 narrow throws (the cell's timing) a first build's stage policy
-    hit 37% and returned 5% with the offset visible, 96% and 55% hidden (unperturbed: 100%,
-    74%). The ES policy: 100% / 81% visible, 95% / 68% hidden. The record keeps the TRUE joints
-    and the executed commands."""
+    it can see into a drift (docs/DESIGN.md, "Measurements behind the code"). The record keeps
+    the TRUE joints and the executed commands."""
     def init(params, key):
         k_policy, k_offset = jax.random.split(key)
         return policy.init(params, k_policy), pert.draw(k_offset)

@@ -15,15 +15,11 @@ steps/s on a CPU). It only calls `Backend.rollout`, so `backend="mjx"` (a GPU) t
 the MJX path has not been exercised.
 
 Schedule: two phases with two rewards (`Reward`). The contact phase (`CONTACT`, from random
-weights; ttmjx/tools/assets/es_contact.*: 134 generations x 48 candidates x 8 narrow throws, 14.5
-min on 2 shared CPU cores) converged to a BLOCK: 98% hit, none returned (the blade in the ball's
-path; the ball falls back on the robot's half). The return phase (`RETURN`, from the contact
-weights) adds a dense landing term, so that every ball that comes down closer to the opponent's
-half scores more: 330 generations (127k episodes, 16.7 min on 2 shared CPU cores), validation
-return rate 0% at generation 99, 72% at 129, 97% at 219, 100% from 309 (64 held-out throws). The
-shipped weights (ttmjx/tools/assets/es_policy.json holds the run, the curve and the measured
-numbers): on 500 fresh narrow throws 100% hit and 100% returned (ideal timing; 90% under the
-cell's timing, CELL_TRAINING), landing around (0.85, -0.09) m with std 0.19 / 0.15 m. Like the
+weights; ttmjx/tools/assets/es_contact.*) converges to a BLOCK: the blade in the ball's path,
+the ball falling back on the robot's half. The return phase (`RETURN`, from the contact weights)
+adds a dense landing term, so that every ball that comes down closer to the opponent's half
+scores more. ttmjx/tools/assets/es_policy.json holds the shipped run, its curve and its measured
+numbers (docs/DATA.md and docs/DESIGN.md, "Measurements behind the code"). Like the
 paper's ES policy it is narrow: trained at 100 Hz on the narrow throws only. Nothing was tuned
 against a GoalsEye learning result: the return phase's weights were set once, from what a block
 scores against a return, and the run stopped at its time limit.
@@ -108,9 +104,9 @@ class Reward(NamedTuple):
     aim: tuple = (0.685, 0.0)   # m, table frame: the centre of the opponent's half
 
 
-# Phase 1 (contact): the reward of the first shipped weights. Its optimum in reach was
-# a block: the blade in the ball's path, 98% hit, 0% returned (the ball falls back on the robot's
-# half): the return bonus is a cliff that no candidate near a block reaches.
+# Phase 1 (contact): the reward of the first shipped weights. Its optimum in reach is a block
+# (the blade in the ball's path, the ball falling back on the robot's half): the return bonus is a
+# cliff that no candidate near a block reaches.
 CONTACT = Reward()
 # Phase 2 (return): a dense landing term (how close to the opponent's half's centre the hit ball
 # comes down, wherever it lands) makes a faster, higher return better than a block at every

@@ -191,7 +191,7 @@ THROW_DISTRIBUTIONS = ("narrow", "any", "varied")
 def physics_steps_per_sample(hz: float | None, physics_dt: float, name: str = "rate") -> int:
     """Physics steps between two samples of a sensor at `hz` (None: every physics step); a rate
     that is not a whole number of physics steps is a ValueError naming `name`. The one rule the
-    training world (ttmjx.world.timing) and the simulated station (deploy/station.py) share."""
+    training world (ttmjx.world.timing) and the simulated station (deploy/sim/station.py) share."""
     if hz is None:
         return 1
     k = 1.0 / (hz * physics_dt) if hz > 0 else 0.5
@@ -204,13 +204,13 @@ def physics_steps_per_sample(hz: float | None, physics_dt: float, name: str = "r
 @dataclasses.dataclass(frozen=True)
 class Timing:
     """When the policy's inputs were sensed and when its commands act: one model for the training
-    world (ttmjx/world/timing.py, both backends) and the simulated station (deploy/station.py).
+    world (ttmjx/world/timing.py, both backends) and the simulated station (deploy/sim/station.py).
 
     Sensors sample at their rate (None: every physics step) and deliver each sample its latency
     (+ a uniform jitter) later; a sample may be dropped. At each control step the policy sees the
     line through the two newest delivered samples, evaluated at the step's time and followed at
     most `extrapolate_s` past the newest sample (then held): the robot runner's rule
-    (deploy/interp.py). Commands start acting `action_delay_s` after they are issued. With a
+    (deploy/robot/interp.py). Commands start acting `action_delay_s` after they are issued. With a
     tracker rate, episodes start at the ball's first tracker sample after the launch (the
     runner's trigger), not at the launch. Profiles: TIMING_PROFILES (docs/DESIGN.md gives the
     sources of the nominal values)."""
@@ -232,7 +232,7 @@ class Timing:
     """How far past the newest sample its line is followed (s); the runner's rule (the export's
     contract carries it). Far enough to bring a ball seen 50 ms late to the tick's time, so the
     ball's position does not depend on the tracker's latency; exports trained before it was
-    recorded followed the line 20 ms (deploy.contract.Contract.extrapolate_s)."""
+    recorded followed the line 20 ms (deploy.robot.contract.Contract.extrapolate_s)."""
     delay_spread_s: float = 0.0
     """Per episode, each of the two latencies and the action delay is shifted by a uniform draw in
     [-delay_spread_s, +delay_spread_s], never below zero (training randomization around the
@@ -284,8 +284,8 @@ class Timing:
     def trained_ranges(self) -> dict:
         """What a policy trained under this timing saw, per episode: the sensor rates (None: every
         physics step) and [lowest, highest] of each latency and of the action delay (s), the
-        jitter and drop probability ([0, largest]). deploy/export.py records it in the contract;
-        a station whose timing falls outside it is refused (deploy/timing_check.py)."""
+        jitter and drop probability ([0, largest]). deploy/sim/export.py records it in the contract;
+        a station whose timing falls outside it is refused (deploy/robot/timing_check.py)."""
         rb, rj, ra = self.spreads()
         span = lambda v, r: [max(0.0, v - r), v + r]  # noqa: E731
         return {"tracker_hz": self.tracker_hz, "joint_hz": self.joint_hz,

@@ -17,8 +17,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ttmjx.world import ballphysics, observation, timing
-from ttmjx.world.config import World
+from ttmjx.world import ballphysics, goalfile, observation, timing
+from ttmjx.world.config import Table, World
+from ttmjx.world.goals import goals_from_unit
 
 # A velocity change this far from free flight within one physics step is a contact. Free-flight
 # changes are < 0.02 m/s per 1 ms step (gravity 0.0098, air < 0.01); the lightest contacts that
@@ -282,17 +283,20 @@ def advance(cfg: World, lay: Layout, state: State, target, qpos, qvel, ball, pad
     return state._replace(frames=jnp.concatenate([state.frames[1:], f[None]]))
 
 
+def uniform_goals(key, n: int, table: Table, margin: float = 0.0):
+    """[n, 2] goals uniform over the opponent's half (extended by `margin`, goals_from_unit) from a
+    JAX key (jittable; n static): the draw practice and evaluation share; evaluation keeps
+    margin=0 (goals on the table)."""
+    return goals_from_unit(jax.random.uniform(key, (n, 2)), table, jnp, margin)
+
+
 def check_goals(goals, n: int | None = None) -> np.ndarray:
-    """Validate user goals: [B, 2] finite floats. Raises ValueError naming the problem."""
-    g = np.asarray(goals, dtype=np.float64)
-    if g.ndim != 2 or g.shape[1] != 2:
-        raise ValueError(f"goals must have shape [B, 2] (x, y in metres), got {g.shape}")
+    """[B, 2] finite float32 user goals (ttmjx.world.goalfile.check_goals; practice may aim beyond
+    the table), one per throw when n is given; ValueError names the problem."""
+    g = goalfile.check_goals(goals)
     if n is not None and g.shape[0] != n:
         raise ValueError(f"goals has {g.shape[0]} rows, expected one per throw ({n})")
-    if not np.all(np.isfinite(g)):
-        bad = np.argwhere(~np.isfinite(g))[0]
-        raise ValueError(f"goals[{bad[0]}, {bad[1]}] = {g[tuple(bad)]} is not finite")
-    return g.astype(np.float32)
+    return g
 
 
 def check_actions(actions, batch: int) -> np.ndarray:

@@ -5,8 +5,9 @@ Success is strict: the ball was hit, its first bounce after the hit was on the
 opponent's half, and that bounce is within 30 (20) cm of the goal (`scored_distance`).
 
 Goals and landings are (x, y) on the table top in the table frame (ttmjx.world.config): the
-opponent's half is 0 <= x <= half_length, |y| <= half_width. Numpy-only at import; functions that
-must run under jit take xp=jax.numpy.
+opponent's half is 0 <= x <= half_length, |y| <= half_width. Numpy only (the robot side uses it);
+functions that must run under jit take xp=jax.numpy, and the draw from a JAX key is
+ttmjx.world.env.uniform_goals.
 """
 from __future__ import annotations
 
@@ -33,15 +34,6 @@ def goals_from_unit(u, table: Table, xp=np, margin: float = 0.0):
     [0, half_length + margin], |y| <= half_width + margin. margin=0: the half itself."""
     hl, hw = table.half_length + margin, table.half_width + margin
     return xp.stack([u[:, 0] * hl, (2 * u[:, 1] - 1) * hw], 1)
-
-
-def uniform_goals(key, n: int, table: Table, margin: float = 0.0):
-    """[n, 2] goals uniform over the opponent's half (extended by `margin`, goals_from_unit) from a
-    JAX key (jittable; n static). The draw practice, evaluation and `ttmjx robot run --goals
-    uniform` share; evaluation keeps margin=0 (goals on the table)."""
-    import jax
-    import jax.numpy as jnp
-    return goals_from_unit(jax.random.uniform(key, (n, 2)), table, jnp, margin)
 
 
 def off_half(goals, table: Table) -> np.ndarray:

@@ -1,7 +1,7 @@
 """The sensor and actuation timing model (config.Timing) for ONE throw, in JAX.
 
-The same rules as the simulated station and the robot runner (deploy/station.py,
-deploy/runner.py, deploy/interp.py), written once more here for the vectorized world; the
+The same rules as the simulated station and the robot runner (deploy/sim/station.py,
+deploy/robot/runner.py, deploy/robot/interp.py), written once more here for the vectorized world; the
 tests compare the two on the same throws (tests/test_timing.py).
 
 Time is counted in physics steps from the episode's start (tick 0). Each control step appends

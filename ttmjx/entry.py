@@ -1,0 +1,42 @@
+"""The `ttmjx` console script: the robot side's commands (`ttmjx robot run` on the fake station or
+the cell, `ttmjx robot bench`) go to deploy/robot/cli.py without importing JAX or MuJoCo, so a
+robot's computer with `pip install 'ttmjx[robot]'` runs them; every other command, and `robot run
+--station sim`, goes to the simulator side's command line (ttmjx/cli.py)."""
+from __future__ import annotations
+
+import sys
+
+ROBOT_SIDE = ("robot run", "robot bench")
+# What a robot-side install lacks: a command that needs them says so in one line.
+SIMULATOR_PACKAGES = ("jax", "jaxlib", "mujoco", "flax", "optax", "orbax", "brax", "matplotlib", "tensorboardX", "tqdm")
+
+
+def on_robot_side(argv: list[str]) -> bool:
+    """Whether argv is a robot-side command that needs no simulator (not --station sim)."""
+    if " ".join(argv[:2]) not in ROBOT_SIDE:
+        return False
+    for i, arg in enumerate(argv):
+        if arg == "--station=sim" or (arg == "--station" and argv[i + 1:i + 2] == ["sim"]):
+            return False
+    return True
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if on_robot_side(argv):
+        from deploy.robot.cli import main as robot_main
+        return robot_main(argv)
+    try:
+        from ttmjx import cli
+    except ImportError as e:
+        if (e.name or "").split(".")[0] not in SIMULATOR_PACKAGES:
+            raise
+        from ttmjx.commandline import fail
+        fail(" ".join(argv[:2]) if argv[:1] == ["robot"] else " ".join(argv[:1]),
+             f"{e.name} is not installed: this command needs the simulator side (pip install 'ttmjx[sim]'); "
+             f"this install runs `ttmjx robot run --station fake|cell` and `ttmjx robot bench`")
+    cli.main(argv)
+
+
+if __name__ == "__main__":
+    main()
