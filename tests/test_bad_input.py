@@ -587,6 +587,6 @@ def test_a_torn_metrics_line_is_said_on_resume_and_the_rows_kept(recorded_tiny_r
     metrics.write_text(whole + '{"iteration": 9, "lo')             # a crash in the middle of a write
     done = resume_tiny(run_dir, oracle_demos)
     assert done.returncode == 0, done.stderr[-2000:]
-    said = [ln for ln in done.stderr.splitlines() if "cut short" in ln]
-    assert said and str(metrics) in said[0], done.stderr[-2000:]
+    said = [ln for ln in (done.stdout + done.stderr).splitlines() if "cut short" in ln]   # the run's progress log
+    assert said and str(metrics) in said[0], (done.stdout + done.stderr)[-2000:]
     assert metrics.read_text() == whole
