@@ -449,9 +449,10 @@ def test_an_interrupted_robot_sweep_goes_on_where_it_stopped(tiny_export, tmp_pa
 
 def test_ctrl_c_during_robot_run_keeps_the_episodes_and_exits_130(tiny_export, tmp_path):
     out = tmp_path / "logs"
+    # 100 episodes: the signal lands mid-session however fast the machine plays them
     proc = subprocess.Popen(command("robot", "run", "--policy", tiny_export, "--station", "sim", "--goals", "five",
-                                    "--out", out), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=ENV, cwd=ROOT)
+                                    "--n", "20", "--out", out), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=ENV, cwd=ROOT)
     done = stop_when(proc, lambda: (out / "episode_0000.deploy.npz").exists(), sig=signal.SIGINT)
     one_line_error(done, 130, "ttmjx robot run: error: stopped by SIGINT", "run the same command")
     assert (out / "episode_0000.meta.json").exists() and (out / "session.plan.json").exists()
