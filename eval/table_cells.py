@@ -98,18 +98,7 @@ def check_table_dir(out: str) -> None:
     foreign = [n for n in names if n not in TABLE_ENTRIES and not n.startswith(".")]
     if not foreign:
         return
-    if "config.json" in names or "checkpoints" in names:
-        what = "a training run"
-    elif "manifest.json" in names:
-        what = "an export"
-    elif "trajectories.npz" in names:
-        what = "a dataset"
-    elif "session.json" in names or any(n.startswith("episode_") for n in names):
-        what = "robot episode logs"
-    else:
-        what = "other files"
-    shown = ", ".join(n + ("/" if os.path.isdir(os.path.join(out, n)) else "") for n in foreign[:4])
-    raise ValueError(f"--out {out!r} holds {what} ({shown}{', ...' if len(foreign) > 4 else ''}), not a table's "
+    raise ValueError(f"--out {out!r} holds {files.what_it_holds(out, foreign)}, not a table's "
                      f"runs/ and results/; choose a new or empty directory")
 
 

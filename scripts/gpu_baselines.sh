@@ -43,11 +43,5 @@ for spec in "$@"; do
 done
 for p in "${pids[@]}"; do wait "$p"; done
 kill $PACKER 2>/dev/null; pack
-python3 - "$B" <<'PY' | tee -a "$OUT/log.txt"
-import glob, json, os, sys
-for f in sorted(glob.glob(os.path.join(sys.argv[1], "table1/runs/*/timing.json"))):
-    t = json.load(open(f)); e = t.get("epochs", [])
-    print(os.path.basename(os.path.dirname(f)), "train", t.get("train_s"), "curve", t.get("curve_eval_s"),
-          "final", t.get("final_eval_s"), "sps", [round(x["sps"]) for x in e][:12])
-PY
+python3 scripts/baseline_timing.py "$B/table1" | tee -a "$OUT/log.txt"
 echo "=== done $(date +%T)" | tee -a "$OUT/log.txt"

@@ -40,15 +40,5 @@ for key in $(printf '%s\n' "$@" | cut -d: -f1 | sort -u); do
 done
 for p in "${pids[@]}"; do wait "$p"; done
 kill $PACKER 2>/dev/null; pack
-python3 - "$B" <<'PY' | tee -a "$OUT/log.txt"
-import glob, json, os, sys
-for f in sorted(glob.glob(os.path.join(sys.argv[1], "*/runs/*/timing.json"))):
-    t = json.load(open(f)); e = t.get("epochs", [])
-    print(f.split(os.sep)[-4], os.path.basename(os.path.dirname(f)), "train", t.get("train_s"), "curve",
-          t.get("curve_eval_s"), "final", t.get("final_eval_s"), "sps", [round(x["sps"]) for x in e][:12])
-for f in sorted(glob.glob(os.path.join(sys.argv[1], "*/results/*.json"))):
-    r = json.load(open(f)); fin = r.get("final", {})
-    print(os.path.basename(f), {k: fin.get(k) for k in ("within_30cm", "within_20cm", "hit_rate", "mean_dist")},
-          "wall", r.get("wall_s"))
-PY
+python3 scripts/baseline_timing.py "$B"/*/ | tee -a "$OUT/log.txt"
 echo "=== done $(date +%T)" | tee -a "$OUT/log.txt"

@@ -191,21 +191,10 @@ def same_episode(directory: str, name: str, ep: Episode) -> None:
 
 def describe(directory: str) -> str:
     """What a directory that is not a robot session holds, in a few words."""
-    names = sorted(os.listdir(directory))
-    if "config.json" in names or "checkpoints" in names:
-        what = "a training run"
-    elif "manifest.json" in names:
-        what = "an export"
-    elif "trajectories.npz" in names:
-        what = "a dataset"
-    elif "results" in names or "runs" in names:
-        what = "an experiment table"
-    elif any(_EPISODE.match(n) for n in names):
-        what = f"episode logs without {PLAN_FILE} (another command's session)"
-    else:
-        what = "other files"
-    shown = ", ".join(n + ("/" if os.path.isdir(os.path.join(directory, n)) else "") for n in names[:4])
-    return f"{what} ({shown}{', ...' if len(names) > 4 else ''})"
+    what = files.what_it_holds(directory)
+    if what.startswith("robot episode logs"):     # episodes without a plan: not this command's kind
+        return what.replace("robot episode logs", f"episode logs without {PLAN_FILE} (another command's session)", 1)
+    return what
 
 
 def session_state(directory: str | None, plan: dict) -> tuple[str, int]:

@@ -141,3 +141,25 @@ class staged_dir:
             shutil.rmtree(self.tmp, ignore_errors=True)
             raise
         return False
+
+
+def what_it_holds(directory: str, names: list[str] | None = None) -> str:
+    """'a training run (config.json, checkpoints/, ...)': what a project directory holds, named by
+    the files that mark each kind of output, with up to four of `names` (default: all its
+    entries) shown; for refusing an --out that holds something other than the command's own."""
+    every = sorted(os.listdir(directory))
+    names = every if names is None else names
+    if "config.json" in every or "checkpoints" in every:
+        what = "a training run"
+    elif "manifest.json" in every:
+        what = "an export"
+    elif "trajectories.npz" in every:
+        what = "a dataset"
+    elif "results" in every or "runs" in every:
+        what = "an experiment table"
+    elif "session.json" in every or any(n.startswith("episode_") for n in every):
+        what = "robot episode logs"
+    else:
+        what = "other files"
+    shown = ", ".join(n + ("/" if os.path.isdir(os.path.join(directory, n)) else "") for n in names[:4])
+    return f"{what} ({shown}{', ...' if len(names) > 4 else ''})"
