@@ -17,7 +17,7 @@ from recorded import RECORDED_PRACTICE, assert_reproduces_a_recording, tiny_reco
 from eval.evaluate import evaluate_uniform, training_evaluation
 from training import checkpoint, runconfig
 from training.pool import load_logs
-from training.trainer import Run, is_eval_iteration, practice_iterations, pretrain_iterations
+from training.trainer import Run, is_eval_iteration, practice_iterations, pretrain_iterations, round_episodes
 from training.update import acting_params
 from ttmjx.world import record
 
@@ -53,6 +53,19 @@ def test_schedule_evaluates_lfp_point_and_end():
     assert n_pre == 2 and n_prac == 4  # 40 / 20 steps; (328 - 200) / 32 rounds
     evals = [i for i in range(n_pre + n_prac) if is_eval_iteration(cfg, i)]
     assert evals[0] == n_pre - 1 and evals[-1] == n_pre + n_prac - 1 and len(evals) == 3
+
+
+@pytest.mark.parametrize("total", [328, 330, 359, 360])
+def test_a_budget_is_met_exactly_by_a_partial_last_round(total):
+    """Demonstrations plus the practice rounds' counted episodes are the budget, whatever its
+    remainder: only the last round counts fewer than episodes_per_ssp."""
+    cfg = dataclasses.replace(runconfig.tiny(), total_trajectories=total)
+    per_round = [round_episodes(cfg, it) for it in range(pretrain_iterations(cfg) + practice_iterations(cfg))]
+    practice = per_round[pretrain_iterations(cfg):]
+    assert cfg.demos + sum(per_round) == total
+    assert all(n == cfg.episodes_per_ssp for n in practice[:-1]) and 0 < practice[-1] <= cfg.episodes_per_ssp
+    lfp = dataclasses.replace(cfg, practice=False)
+    assert sum(round_episodes(lfp, it) for it in range(pretrain_iterations(lfp) + practice_iterations(lfp))) == 0
 
 
 @pytest.fixture(scope="module")

@@ -107,9 +107,26 @@ def test_practice_keeps_every_hit_by_default_and_the_near_half_filter_on_request
     for keep, expected in [("hits", traj.hit), ("near_half", near)]:
         tcfg = TrainConfig(practice_keep=keep, window=8)
         parts = Practice(world, PolicyConfig(), tcfg, Backend(world, "c"), episodes=8, train_steps=0)._pure_parts(None)
-        cache = parts.append(empty_cache(64, traj.valid.shape[1]), traj)
+        cache = parts.append(empty_cache(64, traj.valid.shape[1]), traj, traj.size)
         assert int(cache.count) == int(expected.sum()), keep
+        # A run's last round counts its first n episodes only: the rest join neither the pool
+        # nor the round's statistics.
+        n = traj.size // 3
+        cache = parts.append(empty_cache(64, traj.valid.shape[1]), traj, jnp.int32(n))
+        assert int(cache.count) == int(expected[:n].sum()), keep
     assert TrainConfig().practice_keep == "hits" and TrainConfig().practice_goal_margin == 0.2
+
+
+def test_practice_statistics_cover_the_counted_episodes_only(traj):
+    from training.practice import practice_stats
+    from ttmjx.world.goals import goal_stats
+    t = jax.tree.map(jnp.asarray, traj._replace(on_opponent=np.isfinite(traj.landing[:, 0])))
+    n = traj.size // 2
+    part = practice_stats(t, jnp.int32(0), jnp.int32(5), jnp.int32(n))
+    first = goal_stats(*(np.asarray(x)[:n] for x in (t.landing, t.goal, t.hit, t.on_opponent)))
+    for k in ("hit_rate", "on_table_rate", "within_30cm", "within_20cm"):
+        np.testing.assert_allclose(float(getattr(part, k)), first[k], rtol=1e-6, err_msg=k)
+    assert 0 < first["hit_rate"] < 1 and first["within_30cm"] > 0, "the fixture should hold hits and successes"
 
 
 def test_practice_goals_use_the_configured_margin():

@@ -74,6 +74,12 @@ def append(cache: Cache, traj: Trajectories, keep, demo: bool = False) -> Cache:
                  jnp.minimum(count, cache.capacity).astype(jnp.int32), count.astype(jnp.int32))
 
 
-def add_episodes(cache: Cache, traj: Trajectories, table: Table, margin: float, demo: bool = False) -> Cache:
-    """Relabel `traj` and append the episodes worth training on (hit, landing within margin)."""
-    return append(cache, relabel(traj), keep_for_training(traj, table, margin), demo)
+def add_episodes(cache: Cache, traj: Trajectories, table: Table, margin: float, demo: bool = False,
+                 counted=None) -> Cache:
+    """Relabel `traj` and append the episodes worth training on (hit, landing within margin);
+    with `counted` (an int), only among the first `counted` of them (a run's last, partial
+    round: the rest were played but are not part of its trajectory budget)."""
+    keep = keep_for_training(traj, table, margin)
+    if counted is not None:
+        keep = keep & (jnp.arange(keep.shape[0]) < counted)
+    return append(cache, relabel(traj), keep, demo)

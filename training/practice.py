@@ -48,7 +48,7 @@ class RoundParts(NamedTuple):
     """The steps of a round, compiled or not as the backend allows."""
     goals: Callable      # key -> [M, 2]
     rollout: Callable    # (params, key, throws [M], goals [M, 2]) -> Trajectories
-    append: Callable     # (cache, traj) -> cache
+    append: Callable     # (cache, traj, counted) -> cache
     train: Callable      # (state, cache, key) -> (state, loss [N])
     place: Callable      # tree [M, ...] -> the same, laid out over the devices that play it
 
@@ -63,8 +63,10 @@ def practice_policy(pcfg: PolicyConfig, tcfg: TrainConfig):
     return noisy(base, tcfg.action_noise)
 
 
-def practice_stats(traj: Trajectories, kept_before, kept_after) -> PracticeStats:
-    s = goal_stats(traj.landing, traj.goal, traj.hit, traj.on_opponent, xp=jnp)
+def practice_stats(traj: Trajectories, kept_before, kept_after, counted) -> PracticeStats:
+    """Statistics over the round's first `counted` episodes (those within the run's budget)."""
+    first = jnp.arange(traj.hit.shape[0]) < counted
+    s = goal_stats(traj.landing, traj.goal, traj.hit, traj.on_opponent, xp=jnp, counted=first)
     return PracticeStats(s["hit_rate"], s["on_table_rate"], s["within_30cm"], s["within_20cm"],
                          (kept_after - kept_before).astype(jnp.int32))
 
@@ -76,17 +78,21 @@ def round_keys(key):
 
 
 def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, throws: thrower.Throw,
-                   seeds: bool = False):
+                   counted, seeds: bool = False):
     """One round of Algorithm 1 -> (state, cache, loss [N], PracticeStats): goals, rollouts of the
     acting (moving-average) policies on `throws` [M], relabel + append, S updates.
+
+    counted (int32 scalar, traced): the first `counted` of the M episodes join the cache and the
+    statistics; fewer than M only in a run's last round, so that a budget is met exactly with
+    one compiled round (the rest are played and dropped).
 
     seeds=True: every argument and the `parts` carry a leading axis of independent runs (the
     host round of several seeds; on MJX the whole round is vmapped instead)."""
     over = jax.vmap if seeds else (lambda f: f)
     k_goal, k_roll, k_train = over(round_keys)(key)
     traj = parts.rollout(acting_params(state), k_roll, parts.place(throws), parts.place(parts.goals(k_goal)))
-    new = parts.append(cache, traj)
-    stats = over(practice_stats)(jax.tree.map(jnp.asarray, traj), cache.count, new.count)
+    new = parts.append(cache, traj, counted)
+    stats = over(practice_stats)(jax.tree.map(jnp.asarray, traj), cache.count, new.count, counted)
     state, loss = parts.train(state, new, k_train)
     return state, new, loss, stats
 
@@ -144,7 +150,7 @@ class Practice:
         # vmapped train_loop).
         train = self.train if not self.seeds else self.train_one
         return RoundParts(goals=lambda k: uniform_goals(k, m, world.table, goal_margin), rollout=rollout,
-                          append=lambda c, t: add_episodes(c, t, world.table, keep_margin), train=train,
+                          append=lambda c, t, n: add_episodes(c, t, world.table, keep_margin, counted=n), train=train,
                           place=self.layout.constrain_throws)
 
     def _compiled_round(self, pure: RoundParts):
@@ -199,11 +205,14 @@ class Practice:
         state, loss = self._train_one(state, cache, key)
         return state, loss.mean(0)
 
-    def iteration(self, state: TrainState, cache: Cache, key, throws: thrower.Throw | None = None):
+    def iteration(self, state: TrainState, cache: Cache, key, throws: thrower.Throw | None = None,
+                  counted: int | None = None):
         """One iteration -> (state, cache, loss [N], PracticeStats or None). With `throws` [M]
-        (`round_throws`) a practice round; without, S updates only (pretraining, LFP). With seeds,
-        every argument and result has a leading [S] axis."""
+        (`round_throws`) a practice round, of which the first `counted` episodes (None: all M)
+        join the pool; without, S updates only (pretraining, LFP). With seeds, every argument and
+        result has a leading [S] axis."""
         if throws is not None:
-            return self._round(state, cache, key, throws)
+            n = jnp.int32(self.episodes if counted is None else counted)
+            return self._round(state, cache, key, throws, jnp.full(self.seeds, n) if self.seeds else n)
         state, loss = self.train(state, cache, (jax.vmap(round_keys) if self.seeds else round_keys)(key)[2])
         return state, cache, loss, None

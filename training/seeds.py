@@ -35,8 +35,8 @@ from training.checkpoint import Checkpointed, Counters
 from training.practice import Practice
 from training.runconfig import RunConfig, to_json
 from training.trainer import (SEEDS_FILE, NonFiniteError, Run, finite_flags, install_stop_signals, is_eval_iteration,
-                              phase, practice_iterations, pretrain_iterations, restore_signals, total_iterations,
-                              _now)
+                              phase, practice_iterations, pretrain_iterations, restore_signals, round_episodes,
+                              total_iterations, _now)
 from training.update import acting_params
 from ttmjx.world import files
 from ttmjx.world.backends import Backend, resolve_backend
@@ -150,9 +150,9 @@ class SeedRuns:
         base = np.asarray(ck.key)                                    # [S, 2], as each run's own key
         fold = jax.vmap(jax.random.fold_in, in_axes=(0, None))
         throws = self.practice.round_throws(base, it) if practise else None
-        state, cache, loss, stats = self.practice.iteration(ck.state, ck.cache, fold(base, it), throws)
+        new_traj = round_episodes(cfg, it)
+        state, cache, loss, stats = self.practice.iteration(ck.state, ck.cache, fold(base, it), throws, new_traj)
         self.check_finite(state, loss, it)
-        new_traj = cfg.episodes_per_ssp if practise else 0
         new_upd = cfg.steps_between_ssp if self.practice.train_loop else 0
         c = ck.counters
         ck = Checkpointed(state, cache, ck.key, Counters(c.iteration + 1, c.trajectories + new_traj, c.updates + new_upd))

@@ -52,6 +52,16 @@ def practice_iterations(cfg: RunConfig) -> int:
     return max(0, math.ceil((cfg.total_trajectories - cfg.demos) / cfg.episodes_per_ssp))
 
 
+def round_episodes(cfg: RunConfig, it: int) -> int:
+    """Practice episodes iteration `it` adds to the run's trajectories: episodes_per_ssp, except
+    in the last round, which adds what is left of total_trajectories, so the budget is met
+    exactly (120,000 means 120,000); 0 outside practice."""
+    k = it - pretrain_iterations(cfg)
+    if not cfg.practice or k < 0 or k >= practice_iterations(cfg):
+        return 0
+    return min(cfg.episodes_per_ssp, cfg.total_trajectories - cfg.demos - k * cfg.episodes_per_ssp)
+
+
 def total_iterations(cfg: RunConfig) -> int:
     return pretrain_iterations(cfg) + practice_iterations(cfg)
 
@@ -295,9 +305,10 @@ class Run:
         # computation that uses them runs (the mesh, or one device for the host physics).
         base = np.asarray(ck.key)
         throws = self.practice.round_throws(base, it) if practise else None
-        state, cache, loss, stats = self.practice.iteration(ck.state, ck.cache, jax.random.fold_in(base, it), throws)
+        new_traj = round_episodes(cfg, it)
+        state, cache, loss, stats = self.practice.iteration(ck.state, ck.cache, jax.random.fold_in(base, it), throws,
+                                                            new_traj)
         check_finite(state, loss, it, self.saved_at)
-        new_traj = cfg.episodes_per_ssp if practise else 0
         counters = Counters(np.int32(it + 1), np.int32(int(ck.counters.trajectories) + new_traj),
                             np.int32(int(ck.counters.updates) + (cfg.steps_between_ssp if self.practice.train_loop else 0)))
         ck = Checkpointed(state, cache, ck.key, self.layout.put(counters, self.layout.replicated))

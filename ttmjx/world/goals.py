@@ -59,19 +59,23 @@ def scored_distance(landing, goal, hit, on_opponent, xp=np):
     return xp.where(ok & xp.isfinite(dist), dist, xp.inf)
 
 
-def goal_stats(landing, goal, hit, on_opponent, xp=np) -> dict:
+def goal_stats(landing, goal, hit, on_opponent, xp=np, counted=None) -> dict:
     """Goal-reaching statistics of B attempts as arrays: landing [B, 2] (NaN where nothing
-    landed), goal [B, 2], hit [B] bool, on_opponent [B] bool (scored_distance: strict success).
+    landed), goal [B, 2], hit [B] bool, on_opponent [B] bool (scored_distance: strict success);
+    counted [B] bool (None: all) marks the attempts the statistics are over.
 
-    within_30cm / within_20cm: fraction of all B attempts that succeed; hit_rate: fraction hit;
+    within_30cm / within_20cm: fraction of all attempts that succeed; hit_rate: fraction hit;
     on_table_rate: fraction whose first bounce after the hit was on the opponent's half;
     mean_dist: mean distance to the goal over those on-table landings (NaN if none)."""
     d = scored_distance(landing, goal, hit, on_opponent, xp)
-    ok = xp.isfinite(d)
+    w = xp.ones(d.shape, bool) if counted is None else counted
+    n = xp.maximum(xp.sum(w), 1)
+    ok = xp.isfinite(d) & w
     n_ok = xp.sum(ok)
     mean_dist = xp.where(n_ok > 0, xp.sum(xp.where(ok, d, 0.0)) / xp.maximum(n_ok, 1), xp.nan)
-    return {"within_30cm": xp.mean(d <= RADII[0]), "within_20cm": xp.mean(d <= RADII[1]),
-            "mean_dist": mean_dist, "hit_rate": xp.mean(hit), "on_table_rate": xp.mean(ok)}
+    share = lambda x: xp.sum(x & w) / n  # noqa: E731
+    return {"within_30cm": share(d <= RADII[0]), "within_20cm": share(d <= RADII[1]),
+            "mean_dist": mean_dist, "hit_rate": share(xp.asarray(hit, bool)), "on_table_rate": share(ok)}
 
 
 def goal_metrics(landing, goal, hit, on_opponent) -> dict:

@@ -1,0 +1,72 @@
+#!/usr/bin/env bash
+# On a lent machine with 4 GPUs: Table I's GoalsEye, LFP and GCSL rows and a demonstrations
+# cell at TRAJ trajectories (default 120,000), 5 seeds each, one GPU per program; meanwhile the
+# paper's bootstrap procedure for any-ball throws is built from scratch on the host's CPU cores.
+# Every job outlives one device call (setsid), so calls that follow while the machine is warm
+# keep watching it (a GoalsEye arm at 120k takes longer than one call).
+#   bash scripts/gpu_table1_x4.sh start WAIT_S    # first call: install, launch, then watch
+#   bash scripts/gpu_table1_x4.sh wait WAIT_S     # later calls: keep watching
+# Each call leaves in $OUT: log.txt, each job's log tail and table1.tgz (the ablations' results/,
+# every run's metrics.jsonl and config.json, the bootstrap build's record, policy and maps; no
+# checkpoints or datasets), refreshed every 30 s. A finished arm's seeds are then evaluated on
+# eval/goals/edges_net.csv (goals along the net, the end line and the sidelines) on its GPU.
+set -uo pipefail
+export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false TTMJX_JAX_CACHE=/tmp/jaxcache
+OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"; T=${T1_DIR:-/tmp/t1x4}; mkdir -p "$T/edges"
+TRAJ=${TRAJ:-120000}; SEEDS=${SEEDS:-5}; SCALE=${SCALE:-full}; BOOT=${BOOT:-1}
+# GPU:job:ablation:cells
+JOBS=${JOBS:-"0:goalseye:practice:goalseye 1:lfp:practice:lfp-equal-updates,lfp-equal-data 2:gcsl:demos:d0 3:d100:demos:d100"}
+pack() {
+  tar czf "$OUT/table1.tgz.part" --exclude=checkpoints --exclude=tensorboard --exclude='*/demos' \
+    --exclude='*.npz' --exclude='runs/*/seed*/data' -C "$T" . 2>/dev/null \
+    && mv "$OUT/table1.tgz.part" "$OUT/table1.tgz"
+  for f in "$T"/*.log; do [[ -f $f ]] && tail -c 100000 "$f" > "$OUT/$(basename "$f")"; done
+  # The bootstrap's ES weights are small npz files: kept beside the archive.
+  for f in "$T"/boot_any/bootstrap/es_*.npz; do [[ -f $f ]] && cp "$f" "$OUT/"; done
+}
+edges() {   # edges GPU JOB ABLATION CELLS: every finished seed of the job's cells on the edge goals
+  local gpu=$1 job=$2 abl=$3 cells=$4
+  for cell in ${cells//,/ }; do
+    for run in "$T/$abl/runs/$cell-seed"*; do
+      local c; c=$(basename "$run")
+      [[ -f $T/edges/$abl-$c.json ]] || CUDA_VISIBLE_DEVICES=$gpu python3 -m ttmjx.cli eval "$run" \
+        --goals eval/goals/edges_net.csv --json 2>>"$T/$job.log" | tail -1 > "$T/edges/$abl-$c.json"
+    done
+  done
+}
+cores() {   # cores FIRST LAST: a taskset prefix pinning to those cores, if the machine has them
+  (( $2 < $(nproc) && $1 <= $2 )) && echo "taskset -c $1-$2"
+}
+mode=$1; shift
+if [[ $mode == start ]]; then
+  [[ -z ${NOINSTALL:-} ]] && python3 -m pip install -q --no-deps --no-index .wheels/*.whl 2>&1 | grep -v -i warn | tail -2
+  nvidia-smi --query-gpu=index,name,memory.total --format=csv,noheader | tee -a "$T/log.txt"
+  nproc | sed 's/^/cpu cores: /' | tee -a "$T/log.txt"
+  for spec in $JOBS; do
+    IFS=: read -r gpu job abl cells <<< "$spec"
+    setsid bash -c "cd $PWD; source scripts/gpu_table1_x4.sh lib; export CUDA_VISIBLE_DEVICES=$gpu
+      /usr/bin/time -f 'wall %e s, peak rss %M kB' $(cores $((gpu * 4)) $((gpu * 4 + 3))) python3 -m ttmjx.cli ablate $abl \
+        --scale $SCALE --seeds $SEEDS --cells $cells --trajectories $TRAJ --out $T/$abl 2>&1 | tr '\r' '\n' \
+        | grep -v 'traj/s\|throw/s\|^\s*$' > $T/$job.log
+      touch $T/$job.done; edges $gpu $job $abl $cells; touch $T/$job.edges" </dev/null >/dev/null 2>&1 &
+    echo "started $job on GPU $gpu $(date +%T)" | tee -a "$T/log.txt"
+  done
+  # The paper's procedure on any-ball throws, from scratch, on the remaining cores (JAX on the CPU).
+  (( BOOT )) && setsid bash -c "cd $PWD; CUDA_VISIBLE_DEVICES= JAX_PLATFORMS=cpu /usr/bin/time -f 'wall %e s' $(cores 16 $(( $(nproc) - 1 ))) \
+    python3 -m ttmjx.cli demos --source paper --rebuild all --distribution any --n 3600 --seed 0 \
+    --out $T/boot_any --json 2>&1 | tr '\r' '\n' | grep -v '^\s*$' > $T/boot_any.log; touch $T/boot_any.done" \
+    </dev/null >/dev/null 2>&1 &
+  (( BOOT )) && echo "started boot_any $(date +%T)" | tee -a "$T/log.txt"
+  mode=wait
+fi
+[[ $mode == lib ]] && return 0
+wait_s=$1; t_end=$((SECONDS + wait_s))
+while (( SECONDS < t_end )); do
+  pack
+  n=$(ls "$T"/*.edges "$T"/boot_any.done 2>/dev/null | wc -l)
+  (( n >= $(echo $JOBS | wc -w) + BOOT )) && break
+  sleep 30
+done
+date +%T >> "$T/log.txt"; cp "$T/log.txt" "$OUT/"; pack
+for f in "$T"/*.log; do echo "== $(basename "$f")"; grep -E "^\[|wall|rror|cell|seed" "$f" | tail -6; done
+nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv,noheader
