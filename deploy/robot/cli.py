@@ -26,11 +26,12 @@ from deploy.robot.goals import session_goals
 from deploy.robot.hardware import MonotonicClock
 from deploy.robot.policy_bench import benchmark
 from deploy.robot.runner import Runner, RunnerConfig
+from deploy.robot.session import StationHooks, run_session
 from deploy.robot.timing_check import timing_line, trained_timing
 from ttmjx import commandline
 from ttmjx.commandline import Command, Flag, Report, report
 from ttmjx.world.config import THROW_DISTRIBUTIONS
-from ttmjx.world.files import sha256_file, write_json
+from ttmjx.world.files import sha256_file
 
 STATIONS = ("sim", "fake", "cell")
 # The dry run's policy without an export (--station fake, no --policy): a ball follower at a rate
@@ -139,16 +140,7 @@ def run_fake(goals, out, policy_dir, config, realtime) -> dict:
     clock = MonotonicClock() if realtime else FakeClock(start=0.0)
     robot, tracker = FakeRobot(clock, contract), FakeTracker(clock)
     runner = Runner(robot, tracker, clock, policy, contract, config)
-    if out is not None:
-        os.makedirs(out, exist_ok=True)
-    episodes = runner.run_episodes(goals, out, on_armed=lambda i: tracker.throw_in(0.3))
-    summary = {"episodes": len(episodes), "goals": len(goals), "mode": runner.mode.value,
-               "overruns": runner.overruns, "skipped": runner.skipped,
-               "faults": dict(runner.fault_counts), "policy_hash": runner.policy_hash,
-               "ends": [e.meta["end"] for e in episodes], "out": out}
-    if out is not None:
-        write_json(os.path.join(out, SESSION_FILE), summary, indent=1)
-    return summary
+    return run_session(runner, goals, out, StationHooks(armed=lambda i: tracker.throw_in(0.3)))
 
 
 def run_cell_station(policy_dir, goals, config_path, out, config) -> dict:

@@ -41,7 +41,6 @@ import contextlib
 import dataclasses
 import functools
 import math
-import os
 import time
 
 import jax
@@ -55,6 +54,7 @@ from deploy.robot.goals import check_goals
 from deploy.robot.outcomes import ThrowEvents, complete_episode, goal_summary, latency_ms  # noqa: F401 (re-exported)
 from deploy.robot.runner import Runner, RunnerConfig
 from deploy.robot.safety import count_violations
+from deploy.robot.session import StationHooks, run_session
 from ttmjx.world import env, files, scene
 from ttmjx.world.config import TIMING_PROFILES, Timing, World, physics_steps_per_sample
 
@@ -529,6 +529,16 @@ def play(runner: Runner, station: SimStation, goals, out_dir: str | None = None,
     throws: N launches (SimStation.throw_in's `throw`) instead of sampled ones; poses [N, 8]:
     each episode's start pose (Runner.move_home); sync_launch: each episode starts at the
     launch time the station announces (Runner.run_episode's t_start), not on the ball trigger."""
+    return runner.run_episodes(goals, out_dir, prefix=prefix, poses=poses,
+                               **station_hooks(runner, station, throw_delay_s, finish_s, throws,
+                                               sync_launch).episode_callbacks())
+
+
+def station_hooks(runner: Runner, station: SimStation, throw_delay_s: float = 0.3, finish_s: float = 3.0,
+                  throws=None, sync_launch: bool = False, summary=None) -> StationHooks:
+    """The simulated station's part of each episode (play's arguments): episode i's throw
+    launched throw_delay_s after it is armed, the episode completed with the throw's events,
+    a ball that never came disarmed and finished."""
     def armed(i):
         t_launch = station.throw_in(throw_delay_s, None if throws is None else throws[i])
         return t_launch if sync_launch else None
@@ -537,13 +547,8 @@ def play(runner: Runner, station: SimStation, goals, out_dir: str | None = None,
         runner.disarm()
         station.finish_throw(finish_s)
 
-    return runner.run_episodes(
-        goals, out_dir, on_armed=armed, prefix=prefix,
-        complete=lambda i, ep: complete_episode(ep, station.finish_throw(finish_s), runner.contract),
-        on_no_ball=no_ball, poses=poses)
-
-
-
+    return StationHooks(armed=armed, no_ball=no_ball, summary=summary,
+                        complete=lambda i, ep: complete_episode(ep, station.finish_throw(finish_s), runner.contract))
 
 
 def command_safety(runner: Runner, station: SimStation) -> dict:
@@ -567,10 +572,10 @@ def command_safety(runner: Runner, station: SimStation) -> dict:
 
 
 
-def summarize(runner: Runner, station: SimStation, episodes: list[Episode], goals: np.ndarray,
-              wall_s: float) -> dict:
-    """The JSON summary of a session: goal metrics (goal_summary), command safety
-    (command_safety), faults and timing.
+def summarize(runner: Runner, station: SimStation, episodes: list[Episode], wall_s: float) -> dict:
+    """The simulated station's fields of a session's summary (deploy.robot.session.run_session
+    has the rest): goal metrics (goal_summary), command safety (command_safety), landings,
+    latencies and simulated time.
 
     `violations` are all zero on a fake-time clock. With the runner's computation time charged
     (SimClock(charge_compute=True), `--charge-compute`) the runner's decision-to-send time (~0.1 ms
@@ -579,14 +584,9 @@ def summarize(runner: Runner, station: SimStation, episodes: list[Episode], goal
     `max_speed_fraction` <= 1."""
     sim_s = station.time - station.t_origin
     return files.json_safe({
-        "episodes": len(episodes), "goals": int(len(goals)), "metrics": goal_summary(episodes),
-        **command_safety(runner, station),
-        "mode": runner.mode.value, "overruns": runner.overruns, "skipped": runner.skipped,
-        "faults": dict(runner.fault_counts), "ends": [e.meta["end"] for e in episodes],
+        "metrics": goal_summary(episodes), **command_safety(runner, station),
         "landings": [[float(x) for x in e.traj.landing[0]] for e in episodes],
-        "latency_ms": latency_ms(episodes),
-        "policy_hash": runner.policy_hash, "control_hz": runner.contract.control_hz,
-        "sim_s": float(sim_s), "wall_s": float(wall_s),
+        "latency_ms": latency_ms(episodes), "sim_s": float(sim_s),
         "realtime_factor": float(sim_s / wall_s) if wall_s > 0 else None,
     })
 
@@ -643,21 +643,18 @@ def play_session(loaded: Loaded, goals, out_dir: str | None = None, seed: int = 
     clock = MonotonicClock() if realtime else SimClock(charge_compute=charge_compute)
     station = SimStation(loaded.cfg, loaded.contract, clock=clock, seed=seed, timing=tm)
     runner = Runner(station.robot, station.tracker, clock, loaded.policy, loaded.contract, config, seed=seed)
-    if out_dir is not None:
-        os.makedirs(out_dir, exist_ok=True)
     station.prefetch()
-    wall = time.perf_counter()
-    episodes = play(runner, station, goals, out_dir, throw_delay_s=throw_delay_s, sync_launch=sync_launch)
-    out = summarize(runner, station, episodes, goals, time.perf_counter() - wall)
-    out.update({"policy": loaded.policy_dir, "self_test_error": loaded.policy.self_test_error,
-                "distribution": loaded.cfg.throws.name, "out": out_dir, "seed": seed,
+
+    def summary(episodes, wall_s):
+        return {**summarize(runner, station, episodes, wall_s),
+                "policy": loaded.policy_dir, "self_test_error": loaded.policy.self_test_error,
+                "distribution": loaded.cfg.throws.name, "seed": seed,
                 "timing": files.json_safe(timing_info),
                 # each throw's (tracker latency, joint latency, command delay), s: drawn per throw
                 # within the timing's spreads, or its fixed values
-                "throw_delays_s": [list(d) for d in station.delays_log]})
-    if out_dir is not None:
-        files.write_json(os.path.join(out_dir, "session.json"), out, indent=1)
-    return out
+                "throw_delays_s": [list(d) for d in station.delays_log]}
+    return run_session(runner, goals, out_dir, station_hooks(runner, station, throw_delay_s, sync_launch=sync_launch,
+                                                             summary=summary))
 
 
 def run_sim(policy_dir: str, goals, out_dir: str | None = None, seed: int = 0,

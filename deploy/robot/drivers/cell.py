@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import socket
 import sys
 import time
@@ -157,8 +156,8 @@ def run_cell(policy_dir: str, goals, config_path: str, out_dir: str | None = Non
              runner_config=None, throw_delay_s: float = 0.3, finish_s: float = 3.0,
              policy=None, contract: Contract | None = None) -> dict:
     """`ttmjx robot run --station cell`: the export in policy_dir (or `policy` + `contract`)
-    played toward goals [N, 2] on the cell in config_path, on the real clock, through the
-    runner's own episode loop (Runner.run_episodes). With a [launcher] section each episode's
+    played toward goals [N, 2] on the cell in config_path, on the real clock, in the robot
+    side's one session loop (deploy.robot.session.run_session). With a [launcher] section each episode's
     throw is fired by it and completed with its referee's events (as the simulated station
     completes its own); without, the operator throws and the runner's trigger starts episodes.
     Returns the session summary (also written to out_dir/session.json)."""
@@ -166,6 +165,7 @@ def run_cell(policy_dir: str, goals, config_path: str, out_dir: str | None = Non
     from deploy.robot.goals import check_goals
     from deploy.robot.hardware import MonotonicClock
     from deploy.robot.runner import Runner, RunnerConfig
+    from deploy.robot.session import StationHooks, run_session
     cfg = load_cell_config(config_path)
     if policy is None:
         from deploy.robot.exported import load_export
@@ -176,31 +176,21 @@ def run_cell(policy_dir: str, goals, config_path: str, out_dir: str | None = Non
     cell = Cell(cfg, clock, contract)
     try:
         runner = Runner(cell.robot, cell.tracker, clock, policy, contract, runner_config or RunnerConfig())
-        session = _Session(runner, cell, out_dir, throw_delay_s, finish_s)
-        wall = time.perf_counter()
-        # Each episode is saved as soon as it ends (run_episodes), so a crash loses none.
-        episodes = runner.run_episodes(goals, out_dir, on_armed=session.armed, complete=session.complete,
-                                       on_no_ball=session.no_ball)
-        out = session.summary(episodes, goals, time.perf_counter() - wall)
+        station = _Session(runner, cell, throw_delay_s, finish_s, {"policy": policy_dir, "config": config_path})
+        return run_session(runner, goals, out_dir, StationHooks(armed=station.armed, complete=station.complete,
+                                                                no_ball=station.no_ball, summary=station.summary))
     finally:
         cell.close()
-    out.update({"policy": policy_dir, "config": config_path, "out": out_dir})
-    if out_dir is not None:
-        from ttmjx.world.files import write_json
-        write_json(os.path.join(out_dir, "session.json"), out, indent=1)
-    return out
 
 
 class _Session:
-    """The callbacks of Runner.run_episodes on a cell, and the session's summary."""
+    """The cell's part of each episode (the launcher's throw and referee, the driver faults of
+    its window) and of the session's summary (deploy.robot.session.run_session)."""
 
-    def __init__(self, runner, cell: Cell, out_dir, throw_delay_s: float, finish_s: float):
-        self.runner, self.cell, self.out_dir = runner, cell, out_dir
+    def __init__(self, runner, cell: Cell, throw_delay_s: float, finish_s: float, about: dict):
+        self.runner, self.cell, self.about = runner, cell, about
         self.throw_delay_s, self.finish_s = throw_delay_s, finish_s
         self.t_window = cell.clock.now()          # driver faults since then belong to the next episode
-        self.events: list[dict | None] = []
-        if out_dir is not None:
-            os.makedirs(out_dir, exist_ok=True)
 
     def armed(self, i: int) -> None:
         if self.cell.launcher is not None:
@@ -226,13 +216,8 @@ class _Session:
         ep = complete_episode(ep, _throw_events(events), self.runner.contract)
         return Episode(ep.traj, ep.extras, {**ep.meta, "station": "cell"})
 
-    def summary(self, episodes, goals, wall_s: float) -> dict:
-        r = self.runner
-        out = {"episodes": len(episodes), "goals": int(len(goals)), "mode": r.mode.value,
-               "overruns": r.overruns, "skipped": r.skipped, "faults": dict(r.fault_counts),
-               "driver_faults": dict(self.cell.faults.counts),
-               "ends": [e.meta["end"] for e in episodes], "policy_hash": r.policy_hash,
-               "control_hz": r.contract.control_hz, "wall_s": wall_s,
+    def summary(self, episodes, wall_s: float) -> dict:
+        out = {**self.about, "driver_faults": dict(self.cell.faults.counts),
                "egm": {"received": self.cell.arm.received, "replies": self.cell.arm.replies},
                "gantry": {"reads": self.cell.gantry.reads, "writes": self.cell.gantry.writes,
                           "errors": self.cell.gantry.errors},
