@@ -25,9 +25,10 @@ from ttmjx.commandline import Command, Flag, Report, check_new_path, fail, parse
 from eval.ablate import ABLATION_NAMES, SCALE_NAMES
 from training.baselines.config import ESConfig, PPOConfig, RewardConfig, SACConfig
 from training.runconfig import PRESET_NAMES, RunConfig, preset
+from ttmjx.world.backends import BACKENDS, backend_kind
 from ttmjx.world.config import CONTROL_RATES, THROW_DISTRIBUTIONS, World
 
-Backend = Literal["c", "mjx"]
+Backend = Literal[BACKENDS]
 
 
 RunPath = Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="RUN_OR_CHECKPOINT")]
@@ -149,7 +150,7 @@ class DemosArgs(WorldArgs):
         super().__post_init__()
         if self.rebuild != "none" and self.source != "paper":
             raise ValueError(f"--rebuild {self.rebuild} builds the paper procedure; --source is {self.source!r}")
-        if self.rebuild != "none" and self.backend != "c":
+        if self.rebuild != "none" and backend_kind(self.backend).traceable:
             raise ValueError("--rebuild runs ES and the stages on the MuJoCo C backend (--backend c)")
         if self.rebuild == "stages":
             from ttmjx.tools import es
