@@ -9,6 +9,7 @@ import fcntl
 import gc
 import json
 import os
+import shutil
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
@@ -25,6 +26,17 @@ jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 os.environ["TTMJX_JAX_CACHE"] = _cache
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", _cache)
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
+
+
+
+def private_compilation_cache(directory) -> dict:
+    """Environment variables that give a subprocess its own copy of the session's compilation
+    cache, for a child whose writes are cut short (a file-size limit): JAX writes an entry in
+    place and keeps it when the write fails, and every later process that needs that program
+    would read the truncated entry and compile it again."""
+    shutil.copytree(_cache, directory, dirs_exist_ok=True)
+    return {"TTMJX_JAX_CACHE": str(directory), "JAX_COMPILATION_CACHE_DIR": str(directory)}
+
 
 # Modules in the order they start, longest first (measured wall time on 2 cores, CI); the rest
 # follow in their collection order. With two workers the long ones run side by side and the

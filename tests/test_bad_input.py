@@ -324,6 +324,7 @@ import signal  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from conftest import private_compilation_cache  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ENV = {**os.environ, "PYTHONPATH": ROOT, "JAX_PLATFORMS": "cpu"}
@@ -516,7 +517,8 @@ def on_a_full_disk(argv: list[str], where: str, size_kb: int) -> subprocess.Comp
 
     def limit():
         resource.setrlimit(resource.RLIMIT_FSIZE, (size_kb * 1024, size_kb * 1024))
-    return subprocess.run(argv, capture_output=True, text=True, timeout=300, env=ENV, cwd=ROOT, preexec_fn=limit)
+    env = {**ENV, **private_compilation_cache(os.path.join(os.path.dirname(where), "jax_cache"))}
+    return subprocess.run(argv, capture_output=True, text=True, timeout=300, env=env, cwd=ROOT, preexec_fn=limit)
 
 
 def test_a_full_disk_during_a_checkpoint_is_one_line_naming_the_file(oracle_demos, tmp_path):
@@ -535,8 +537,9 @@ def test_a_full_disk_during_a_checkpoint_is_one_line_naming_the_file(oracle_demo
 def test_demos_on_a_full_disk_names_the_file_and_leaves_nothing(tmp_path):
     """A dataset cut short by a full disk leaves no partial files: the same command runs again."""
     out = tmp_path / "d"
+    env = {**ENV, **private_compilation_cache(tmp_path / "jax_cache")}   # its cut writes stay its own
     done = subprocess.run(command("demos", "--source", "oracle", "--n", "20", "--out", out), capture_output=True,
-                          text=True, timeout=300, env=ENV, cwd=ROOT,
+                          text=True, timeout=300, env=env, cwd=ROOT,
                           preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000)))
     one_line_error(done, 1, "ttmjx demos: error:", str(out / "trajectories.npz"), "File too large")
     assert not out.exists(), os.listdir(out)
