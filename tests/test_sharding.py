@@ -93,7 +93,8 @@ def placement_report(run) -> dict:
     mjx = Practice(cfg.world, cfg.policy, cfg.train, Backend(cfg.world, "mjx"), cfg.episodes_per_ssp,
                    cfg.steps_between_ssp, lay)
     throws = mjx.round_throws(jax.random.PRNGKey(0), 0)
-    rnd = mjx._round.lower(ck.state, ck.cache, jax.random.PRNGKey(1), throws).compile().as_text()
+    counted = jax.numpy.int32(cfg.episodes_per_ssp)        # every episode of the round joins the pool
+    rnd = mjx._round.lower(ck.state, ck.cache, jax.random.PRNGKey(1), throws, counted).compile().as_text()
     leaf = jax.tree.leaves(ck.state.params)[0]
     return {"mesh": dict(lay.mesh.shape), "params_spec": str(leaf.sharding.spec),
             "params_devices": len(leaf.sharding.device_set), "cache_replicated": ck.cache.obs.sharding.is_fully_replicated,
