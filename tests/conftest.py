@@ -38,10 +38,15 @@ def private_compilation_cache(directory) -> dict:
     return {"TTMJX_JAX_CACHE": str(directory), "JAX_COMPILATION_CACHE_DIR": str(directory)}
 
 
-# Modules in the order they start, longest first (measured wall time on 2 cores, CI); the rest
-# follow in their collection order. With two workers the long ones run side by side and the
-# short ones fill in at the end.
-FIRST = ()
+# Modules in the order they start, longest first (seconds of a worker's time, measured on 2 cores
+# with --durations=0: docs/BENCHMARKS.md "The test loop"); the rest follow in their collection
+# order. With two workers the two longest run side by side and the short ones fill in at the end.
+# pyproject.toml passes --no-loadscope-reorder, or xdist would order modules by their test count.
+FIRST = ("test_trainer.py", "test_bad_input.py", "test_baselines.py", "test_physics.py",
+         "test_paper_bootstrap.py", "test_seeds.py", "test_cli.py", "test_striker.py",
+         "test_training_core.py", "test_timing.py", "test_ablate.py", "test_models.py",
+         "test_sharding.py", "test_bootstrap.py", "test_drivers.py", "test_world.py",
+         "test_export.py", "test_es.py", "test_cell_cli.py", "test_deploy_runner.py")
 
 
 def pytest_collection_modifyitems(config, items):
