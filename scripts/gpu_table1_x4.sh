@@ -6,9 +6,11 @@
 # keep watching it (a GoalsEye arm at 120k takes longer than one call).
 #   bash scripts/gpu_table1_x4.sh start WAIT_S    # first call: install, launch, then watch
 #   bash scripts/gpu_table1_x4.sh wait WAIT_S     # later calls: keep watching
-# Each call leaves in $OUT: log.txt, each job's log tail and table1.tgz (the ablations' results/,
-# every run's metrics.jsonl and config.json, the bootstrap build's record, policy and maps; no
-# checkpoints or datasets), refreshed every 30 s. A finished arm's seeds are then evaluated on
+# Each call leaves in $OUT: log.txt and table1.tgz (every file under 2 MB but checkpoints: the
+# ablations' results/, each run's metrics.jsonl and config.json, the reports, the bootstrap
+# build's record, ES weights, policy and maps; each job's log tail as *.log.tail), refreshed
+# every 30 s. Give WAIT_S at least 40 s under the call's limit (the lease's budget_left_s may
+# cut the last call short, and a call cut by its limit returns only what $OUT held then). A finished arm's seeds are then evaluated on
 # eval/goals/edges_net.csv (goals along the net, the end line and the sidelines) on its GPU.
 set -uo pipefail
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false TTMJX_JAX_CACHE=/tmp/jaxcache
@@ -16,13 +18,12 @@ OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"; T=${T1_DIR:-/tmp/t1x4}; mkdir -p "$T/edge
 TRAJ=${TRAJ:-120000}; SEEDS=${SEEDS:-5}; SCALE=${SCALE:-full}; BOOT=${BOOT:-1}
 # GPU:job:ablation:cells
 JOBS=${JOBS:-"0:goalseye:practice:goalseye 1:lfp:practice:lfp-equal-updates,lfp-equal-data 2:gcsl:demos:d0 3:d100:demos:d100"}
-pack() {
-  tar czf "$OUT/table1.tgz.part" --exclude=checkpoints --exclude=tensorboard --exclude='*/demos' \
-    --exclude='*.npz' --exclude='runs/*/seed*/data' -C "$T" . 2>/dev/null \
+pack() {   # $OUT gets two files (a call returns at most 8): table1.tgz and log.txt
+  for f in "$T"/*.log; do [[ -f $f ]] && tail -c 100000 "$f" > "$f.tail"; done
+  (cd "$T" && find . -type f -size -2M ! -path '*/checkpoints/*' ! -path '*/tensorboard/*' ! -name '*.log' \
+    > /tmp/t1x4.list && tar czf "$OUT/table1.tgz.part" -T /tmp/t1x4.list 2>/dev/null) \
     && mv "$OUT/table1.tgz.part" "$OUT/table1.tgz"
-  for f in "$T"/*.log; do [[ -f $f ]] && tail -c 100000 "$f" > "$OUT/$(basename "$f")"; done
-  # The bootstrap's ES weights are small npz files: kept beside the archive.
-  for f in "$T"/boot_any/bootstrap/es_*.npz; do [[ -f $f ]] && cp "$f" "$OUT/"; done
+  cp "$T/log.txt" "$OUT/log.txt" 2>/dev/null
 }
 edges() {   # edges GPU JOB ABLATION CELLS: every finished seed of the job's cells on the edge goals
   local gpu=$1 job=$2 abl=$3 cells=$4
@@ -46,15 +47,15 @@ if [[ $mode == start ]]; then
     IFS=: read -r gpu job abl cells <<< "$spec"
     setsid bash -c "cd $PWD; source scripts/gpu_table1_x4.sh lib; export CUDA_VISIBLE_DEVICES=$gpu
       /usr/bin/time -f 'wall %e s, peak rss %M kB' $(cores $((gpu * 4)) $((gpu * 4 + 3))) python3 -m ttmjx.cli ablate $abl \
-        --scale $SCALE --seeds $SEEDS --cells $cells --trajectories $TRAJ --out $T/$abl 2>&1 | tr '\r' '\n' \
-        | grep -v 'traj/s\|throw/s\|^\s*$' > $T/$job.log
+        --scale $SCALE --seeds $SEEDS --cells $cells --trajectories $TRAJ --out $T/$abl 2>&1 | stdbuf -oL tr '\r' '\n' \
+        | grep --line-buffered -v 'traj/s\|throw/s\|absl\|^\s*$' > $T/$job.log
       touch $T/$job.done; edges $gpu $job $abl $cells; touch $T/$job.edges" </dev/null >/dev/null 2>&1 &
     echo "started $job on GPU $gpu $(date +%T)" | tee -a "$T/log.txt"
   done
   # The paper's procedure on any-ball throws, from scratch, on the remaining cores (JAX on the CPU).
   (( BOOT )) && setsid bash -c "cd $PWD; CUDA_VISIBLE_DEVICES= JAX_PLATFORMS=cpu /usr/bin/time -f 'wall %e s' $(cores 16 $(( $(nproc) - 1 ))) \
     python3 -m ttmjx.cli demos --source paper --rebuild all --distribution any --n 3600 --seed 0 \
-    --out $T/boot_any --json 2>&1 | tr '\r' '\n' | grep -v '^\s*$' > $T/boot_any.log; touch $T/boot_any.done" \
+    --out $T/boot_any --json 2>&1 | stdbuf -oL tr '\r' '\n' | grep --line-buffered -v 'absl\|^\s*$' > $T/boot_any.log; touch $T/boot_any.done" \
     </dev/null >/dev/null 2>&1 &
   (( BOOT )) && echo "started boot_any $(date +%T)" | tee -a "$T/log.txt"
   mode=wait

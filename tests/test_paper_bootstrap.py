@@ -154,6 +154,20 @@ def test_cli_refuses_a_rebuild_too_small_for_es(tmp_path):
     assert not out.exists()
 
 
+def test_a_rebuild_resumes_in_its_out_directory_and_nothing_else_is_overwritten(tmp_path):
+    """`--rebuild` keeps what it built in OUT/bootstrap/ when it is cut short (docs/DATA.md): the
+    same command accepts an OUT holding only that, and still refuses an OUT with anything else."""
+    from ttmjx.cli import DemosArgs
+    out = tmp_path / "d"
+    (out / "bootstrap").mkdir(parents=True)
+    DemosArgs(source="paper", rebuild="all", distribution="any", out=str(out))
+    with pytest.raises(ValueError, match="already holds files"):
+        DemosArgs(source="paper", rebuild="none", out=str(out))
+    (out / "trajectories.npz").write_bytes(b"")
+    with pytest.raises(ValueError, match="already holds files"):
+        DemosArgs(source="paper", rebuild="all", distribution="any", out=str(out))
+
+
 @pytest.fixture(scope="module")
 def shipped():
     """The shipped `paper` source and the narrow ES policy it started from (unperturbed, as the

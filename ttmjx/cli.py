@@ -122,7 +122,6 @@ class DemosArgs(WorldArgs):
     figure DIR/coverage.png (docs/DATA.md); for `paper`, the narrow ES policy's landings beside
     the dataset's (the paper's figure)."""
     BOUNDS: ClassVar[dict] = {"n": (1, batch_limit)}
-    NEW_DIRS: ClassVar[tuple] = ("out",)
     source: Literal["paper", "striker", "es", "oracle", "scripted"] = "paper"
     """Demonstrator: paper (the paper's bootstrap procedure: ES until it returns balls, its
     rollouts with 4 joints perturbed, imitation and practice with goals shifted up the table, then
@@ -141,10 +140,18 @@ class DemosArgs(WorldArgs):
     rebuild: Literal["none", "stages", "all"] = "none"
     """With --source paper: none (gather with the shipped weights, seconds), stages (the shift and
     expand stages again from the shipped ES weights, ~10 min on 2 CPU cores), all (the whole
-    procedure from scratch, ES included, ~45 min); everything it builds goes to OUT/bootstrap/."""
+    procedure from scratch, ES included, ~45 min); everything it builds goes to OUT/bootstrap/,
+    and the same command resumes it there (an OUT holding only bootstrap/)."""
     es_generations: tuple[int, int] = (134, 330)
     """With --rebuild all: ES generations of the contact and the return phase (48 candidates x 8
     throws each)."""
+
+    @property
+    def NEW_DIRS(self) -> tuple:   # noqa: N802 (the Report field list)
+        # A rebuild cut short resumes: an --out that holds only its bootstrap/ is accepted.
+        resuming = (self.rebuild != "none" and os.path.isdir(self.out)
+                    and set(os.listdir(self.out)) == {"bootstrap"})
+        return () if resuming else ("out",)
 
     def __post_init__(self):
         super().__post_init__()
