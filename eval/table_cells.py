@@ -197,10 +197,19 @@ def seed_groups(cells: list, results_dir: str) -> list[list]:
 def run_group(group: list, results_dir: str, batch: BatchTrainer, progress: bool) -> list[dict]:
     """The results of the seeds of one variant trained together (written atomically per cell);
     [{'stopped_by_signal': N}, ...] if a signal stopped them (the same call resumes them)."""
+    made = [c.run_dir for c in group if not os.path.isdir(c.run_dir)]
     for c in group:
         os.makedirs(c.run_dir, exist_ok=True)
     t0 = time.perf_counter()
-    outs = batch([c.config for c in group], progress)
+    try:
+        outs = batch([c.config for c in group], progress)
+    except ValueError:
+        # Refused before training (a program too big for the device, a bad setting): the run
+        # directories this call made stay empty, so they go, and the table holds nothing half.
+        for d in made:
+            if os.path.isdir(d) and not os.listdir(d):
+                os.rmdir(d)
+        raise
     per_cell = (time.perf_counter() - t0) / len(group)   # the program's time, shared by its seeds
     results = []
     for cell, out in zip(group, outs):

@@ -146,3 +146,22 @@ def test_t_table_agrees_with_scipy_where_installed():
     stats = pytest.importorskip("scipy.stats")
     for df, t in tables.T975.items():
         assert abs(stats.t.ppf(0.975, df) - t) < 1e-4, df
+
+
+def test_a_program_too_big_for_the_device_is_refused_in_one_line_with_nothing_written(tmp_path, monkeypatch, capsys):
+    """`ttmjx ablate` asks for the device memory of each program of seeds before compiling it:
+    refused with the estimate and the device's size, exit 2, no run directory left behind."""
+    from training import budget
+    from ttmjx import cli
+    monkeypatch.setattr(budget, "device_bytes", lambda: 1024 ** 2)
+    out = tmp_path / "abl"
+    monkeypatch.setattr("sys.argv", ["ttmjx", "ablate", "demos", "--scale", "tiny", "--seeds", "2",
+                                     "--cells", "d10", "--out", str(out)])
+    with pytest.raises(SystemExit) as e:
+        cli.main()
+    err = [line for line in capsys.readouterr().err.strip().splitlines() if not line.startswith("[ablate")]
+    assert e.value.code == 2 and len(err) == 1, err      # the progress lines aside, one line
+    assert err[0].startswith("ttmjx ablate: error: --seeds 2 (runs in one program) need ~")
+    assert "GiB of device memory" in err[0] and "the device has 0.0 GiB" in err[0]
+    assert not [f for _, _, names in os.walk(out) for f in names]
+    assert not os.listdir(out / "runs")
