@@ -81,6 +81,37 @@ def apply(base: RunConfig, overrides: dict) -> RunConfig:
     return replace_fields(base, {k: v.fn(base) if isinstance(v, Derived) else v for k, v in overrides.items()})
 
 
+def parse_settings(pairs, base: RunConfig) -> dict:
+    """`--set` pairs ('demo_source=paper', 'train.members=3') -> {dotted field: value}, each value
+    read as the type of the field it replaces in `base`; ValueError naming the pair otherwise."""
+    out = {}
+    for pair in pairs or ():
+        key, eq, text = pair.partition("=")
+        if not eq or not key:
+            raise ValueError(f"--set {pair!r}: expected FIELD=VALUE (e.g. demo_source=paper)")
+        obj = base
+        for part in key.split("."):
+            if not dataclasses.is_dataclass(obj) or part not in {f.name for f in dataclasses.fields(obj)}:
+                raise ValueError(f"--set {pair!r}: the run configuration has no field {key!r}")
+            obj = getattr(obj, part)
+        try:
+            if isinstance(obj, bool):
+                if text.lower() not in ("true", "false"):
+                    raise ValueError
+                value = text.lower() == "true"
+            elif isinstance(obj, (int, float, str)):
+                value = type(obj)(text)
+            else:
+                raise TypeError
+        except ValueError:
+            raise ValueError(f"--set {pair!r}: {text!r} is not of type {type(obj).__name__} (the type of {key})") from None
+        except TypeError:
+            raise ValueError(f"--set {pair!r}: {key} is a {type(obj).__name__}; --set takes numbers, "
+                             f"booleans and names") from None
+        out[key] = value
+    return out
+
+
 def check_choices(obj, where: str = "") -> None:
     """ValueError for a field whose type is a Literal and whose value is none of its choices
     (dataclasses do not check annotations, and a bad demo_source would fail deep in a run)."""
@@ -227,10 +258,13 @@ def cell_base(base: RunConfig, seed: int, run_dir: str, trajectories: int | None
 
 
 def variant_config(name: str, variant: str, scale: str, seed: int, run_dir: str,
-                   trajectories: int | None = None) -> RunConfig:
-    """The resolved configuration of one cell; ValueError naming the variant if it is invalid."""
+                   trajectories: int | None = None, settings: tuple = ()) -> RunConfig:
+    """The resolved configuration of one cell: the scale's base, `settings` (`--set`
+    FIELD=VALUE pairs, for every cell) and the variant's own fields on top; ValueError naming
+    the variant if it is invalid."""
     ab = ABLATIONS[name]
     base = cell_base(SCALES[scale].base(ab.setting), seed, run_dir, trajectories)
+    base = replace_fields(base, parse_settings(settings, base))
     try:
         cfg = apply(base, ab.variants[variant])
         check_choices(cfg)
@@ -240,11 +274,12 @@ def variant_config(name: str, variant: str, scale: str, seed: int, run_dir: str,
 
 
 def plan(name: str, scale: str, seeds: int, out: str, spec: str | None = None,
-         trajectories: int | None = None) -> list[cellrun.Cell]:
+         trajectories: int | None = None, settings: tuple = ()) -> list[cellrun.Cell]:
     """The selected cells with their configurations, checked before anything is written: every
     variant config valid, every finished result computed with the config asked for now."""
     return cellrun.planned_cells(out, select(name, cell_order(name, seeds), spec),
-                                 lambda v, seed, run_dir: variant_config(name, v, scale, seed, run_dir, trajectories))
+                                 lambda v, seed, run_dir: variant_config(name, v, scale, seed, run_dir, trajectories,
+                                                                         settings))
 
 
 def status(out: str, name: str, seeds: int) -> list[str]:
@@ -264,10 +299,11 @@ def status(out: str, name: str, seeds: int) -> list[str]:
 
 # -- running and reporting ---------------------------------------------------------------------
 def run(name: str, scale: str, seeds: int, out: str, spec: str | None = None, trajectories: int | None = None,
-        progress: bool = True, trainer: cellrun.Trainer = cellrun.goalseye, command: str = "") -> dict:
+        progress: bool = True, trainer: cellrun.Trainer = cellrun.goalseye, command: str = "",
+        settings: tuple = ()) -> dict:
     """Train the selected cells that are not finished, then rebuild the outputs. The summary has
     'stopped_by_signal' set when a signal cut a cell short (its run resumes next time)."""
-    cells = plan(name, scale, seeds, out, spec, trajectories)
+    cells = plan(name, scale, seeds, out, spec, trajectories, settings)
     for c in cells:
         if c.config.practice and practice_iterations(c.config) == 0:
             log(f"[ablate] note: {c.name} practises nothing: its {c.config.total_trajectories} trajectories do not "

@@ -165,3 +165,17 @@ def test_a_program_too_big_for_the_device_is_refused_in_one_line_with_nothing_wr
     assert "GiB of device memory" in err[0] and "the device has 0.0 GiB" in err[0]
     assert not [f for _, _, names in os.walk(out) for f in names]
     assert not os.listdir(out / "runs")
+
+
+def test_settings_apply_to_every_cell_before_the_variants_own():
+    """`--set FIELD=VALUE`: e.g. Table I on another bootstrap (`--set demo_source=striker`)."""
+    cfgs = [ablate.variant_config("practice", v, "tiny", 0, "/tmp/x", None,
+                                  ("demo_source=striker", "train.learning_rate=5e-4", "practice=true"))
+            for v in ablate.ABLATIONS["practice"].variants]
+    assert all(c.demo_source == "striker" and c.train.learning_rate == 5e-4 for c in cfgs)
+    assert [c.practice for c in cfgs] == [True, False, False]       # the variants' own fields win
+    for bad, says in [("demos", "expected FIELD=VALUE"), ("foo=1", "no field 'foo'"),
+                      ("demos=abc", "'abc' is not of type int"), ("practice=yes", "not of type bool"),
+                      ("world.throws=any", "--set takes numbers")]:
+        with pytest.raises(ValueError, match=says):
+            ablate.variant_config("practice", "goalseye", "tiny", 0, "/tmp/x", None, (bad,))

@@ -250,6 +250,9 @@ class AblateArgs(Report):
     """Total trajectories per cell; None: the scale's."""
     out: str | None = None
     """Ablation directory; None: ablations/NAME-SCALE."""
+    set: tuple[str, ...] = ()
+    """FIELD=VALUE settings of the run configuration for every cell, before the variants' own
+    (e.g. --set demo_source=paper: the table on the paper's bootstrap procedure)."""
     report: Flag = False
     """Only (re)build the table, curves, landing maps and summary from the finished cells."""
     plan: Flag = False
@@ -541,18 +544,18 @@ def ablate(a: AblateArgs) -> None:
     scale = ablations.resolve_scale(a.scale)
     out = a.out or ablations.default_out(a.name, scale)
     if a.plan:
-        ablations.plan(a.name, scale, a.seeds, out, a.cells, a.trajectories)   # refuses what would fail
+        ablations.plan(a.name, scale, a.seeds, out, a.cells, a.trajectories, a.set)   # refuses what would fail
         print("\n".join(ablations.status(out, a.name, a.seeds)))
         return
     command = " ".join(["ttmjx ablate", a.name, "--scale", scale, "--seeds", str(a.seeds)]
                        + (["--cells", a.cells] if a.cells else [])
                        + (["--trajectories", str(a.trajectories)] if a.trajectories else [])
-                       + (["--out", a.out] if a.out else []))
+                       + (["--out", a.out] if a.out else []) + [f"--set {p}" for p in a.set])
     if a.report:
         summary = ablations.build_report(a.name, scale, out, command)
     else:
         summary = ablations.run(a.name, scale, a.seeds, out, a.cells, a.trajectories, progress=not a.json,
-                                command=command)
+                                command=command, settings=a.set)
     table_report(a, "ablate", summary, out)
 
 
