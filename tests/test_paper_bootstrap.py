@@ -189,11 +189,19 @@ def test_the_shipped_bootstrap_covers_the_half_beyond_the_narrow_policy(shipped)
     assert np.all(np.asarray(final.goal) == 0.0)                 # the zero placeholder: relabelled later
 
 
-def test_the_shipped_weights_refuse_another_throw_distribution():
+def test_each_throw_distribution_gets_its_own_shipped_build_and_no_other():
+    """Narrow throws: ttmjx/tools/assets/; any-ball: assets/any/ (each built on its throws); a
+    distribution without a build is refused, not served another's."""
     meta = bootstrap.read_meta()
     assert meta["world"]["throws"]["name"] == "narrow" and meta["procedure"]["final"] == 3600
-    with pytest.raises(ValueError, match="built on narrow throws, not any"):
-        bootstrap.load_policy(World().with_throws("any"))
+    from ttmjx.tools import es
+    any_dir = es.shipped_dir("any", bootstrap.WEIGHTS_NAME)
+    assert es.shipped_dir("any") == any_dir and es.read_meta(any_dir)["distribution"] == "any"
+    assert any_dir != bootstrap.ASSETS and bootstrap.read_meta(any_dir)["world"]["throws"]["name"] == "any"
+    policy, params = bootstrap.load_policy(World().with_throws("any"))
+    assert set(params) >= set(bootstrap.NORM_NAMES)
+    with pytest.raises(ValueError, match="built on narrow throws, not varied"):
+        bootstrap.load_policy(World().with_throws("varied"))
 
 
 def test_cli_demos_paper_writes_the_two_maps(tmp_path):

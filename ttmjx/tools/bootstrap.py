@@ -129,11 +129,13 @@ def goal_policy(cfg: World, meta: dict) -> backends.Policy:
 
 def load_policy(cfg: World, directory: str | None = None):
     """(Policy, params) of the `paper` source's last stage (without the joint perturbation,
-    which demos.source_policy adds)."""
+    which demos.source_policy adds); default: the shipped build for cfg's throws."""
+    from ttmjx.tools import es
+    directory = directory or es.shipped_dir(cfg.throws.name, WEIGHTS_NAME)
     tensors, meta = load_weights(directory)
     built = meta.get("world", {}).get("throws", {}).get("name")
     if built is not None and built != cfg.throws.name:
-        raise ValueError(f"the paper bootstrap's policy in {directory or ASSETS} was built on {built} throws, not "
+        raise ValueError(f"the paper bootstrap's policy in {directory} was built on {built} throws, not "
                          f"{cfg.throws.name}: build it for them (ttmjx demos --source paper --rebuild all "
                          f"--distribution {cfg.throws.name}) or use --source striker")
     return goal_policy(cfg, meta), {k: jnp.asarray(v) for k, v in tensors.items()}

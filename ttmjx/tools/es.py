@@ -225,12 +225,20 @@ def read_meta(params_dir: str | None = None) -> dict:
         return json.load(f)
 
 
+def shipped_dir(distribution: str, weights_name: str = WEIGHTS_NAME) -> str:
+    """Where shipped weights for a throw distribution live: ttmjx/tools/assets/ for narrow throws
+    (the first builds), ttmjx/tools/assets/<distribution>/ for the others; a distribution with no
+    build of its own gets the narrow one (which the loaders refuse or the caller names)."""
+    d = os.path.join(ASSETS, distribution)
+    return d if distribution != "narrow" and os.path.exists(os.path.join(d, weights_name)) else ASSETS
+
+
 def load_policy(cfg: World, params_dir: str | None = None):
     """(Policy, params) of the ES source. params_dir: a directory holding es_policy.npz (default:
-    the shipped weights in ttmjx/tools/assets/) or the path of an .npz file itself. The home pose and
+    the shipped weights for cfg's throws, `shipped_dir`) or the path of an .npz file itself. The home pose and
     the normalisation come from the weights file, not from cfg; the shipped policy was trained at
     100 Hz on narrow throws and is not meant for other rates or distributions."""
-    path = params_dir or ASSETS
+    path = params_dir or shipped_dir(cfg.throws.name)
     if os.path.isdir(path):
         path = os.path.join(path, WEIGHTS_NAME)
     params = jax.tree.map(jnp.asarray, load_params(path))
