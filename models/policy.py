@@ -138,8 +138,9 @@ def with_action_noise(policy: Policy, scale: float) -> Policy:
 
 
 def with_integrating_action_noise(policy: Policy, scale: float) -> Policy:
-    """WITHDRAWN form, kept for runs recorded with it and for the noise ablation: a + z with the
-    true joints observed, which the closed loop integrates (see with_action_noise)."""
+    """The paper's form as written ("New Results"): a + z on every target with the true joints
+    observed, z held for the episode; the closed loop here integrates it (see with_action_noise).
+    `ttmjx ablate noise` runs it as the paper-bX variants."""
     def init(params, key):
         k_inner, k_noise = jax.random.split(key)
         return policy.init(params, k_inner), uniform_offset(k_noise, scale, params.norm.act_std)

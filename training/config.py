@@ -38,8 +38,9 @@ class TrainConfig:
     # goal_margin of the opponent's half (this project's earlier filter).
     practice_keep: Literal[PRACTICE_KEEP] = "hits"
     action_noise: float = 0.0            # b of the per-episode uniform action noise
-    # How it is applied (models.policy): "offset", a calibration offset the policy cannot see;
-    # "integrating", the withdrawn a + z that the closed loop integrates.
+    # How it is applied (models.policy): "offset", a calibration offset the policy cannot see
+    # (this project's own method); "integrating", the paper's a + z as written, which the closed
+    # loop integrates.
     action_noise_form: Literal[NOISE_FORMS] = "offset"
     # The acting policy is an exponential moving average of the trained weights with this
     # decay per update (0: the weights themselves).
