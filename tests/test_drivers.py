@@ -356,23 +356,32 @@ def test_messages_queued_behind_a_late_driver_thread_keep_only_the_newest():
 def test_gantry_replies_late_by_a_poll_period_are_dropped_a_slower_drive_is_not(served):
     """Against serve's drive: replies turned 40 ms slower (the usual ~1 ms) lose their positions
     as late (gantry_late_reply), at most MAX_LATE_DROPS in a row, so readings still come; back to
-    the usual speed, nothing is dropped."""
+    the usual speed, nothing more is dropped than at the usual speed before. (On a loaded machine
+    a usual reply can itself come late; the window before the fault measures how often, so the
+    test asks about the drive, not about the machine's load.)"""
     from deploy.robot.drivers.gantry import MAX_LATE_DROPS, ModbusGantry
     from deploy.robot.hardware import MonotonicClock
     _, cfg, launcher, _ = served
     g = ModbusGantry(cfg.gantry, MonotonicClock()).start()
+    late_now = lambda: g.faults.counts.get("gantry_late_reply", 0)  # noqa: E731
     try:
-        time.sleep(0.3)
-        assert g.reads > 10 and not g.faults.counts.get("gantry_late_reply")
+        deadline = time.monotonic() + 10.0       # the first readings, however loaded the machine
+        while g.reads <= 10 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert g.reads > 10
+        before = late_now()
+        time.sleep(0.6)
+        usual = late_now() - before                                # at the usual speed, this machine
         launcher.call("faults", spec="modbus.delay_ms=40")
-        reads = g.reads
+        reads, start = g.reads, late_now()
         time.sleep(0.6)
         launcher.call("faults", spec="")
-        late, during = g.faults.counts["gantry_late_reply"], g.reads - reads
+        late, during = late_now() - start, g.reads - reads
         assert late >= MAX_LATE_DROPS and during >= 2, (late, during)
-        assert late <= MAX_LATE_DROPS * (during + 1)               # never more than 2 in a row
+        assert late <= MAX_LATE_DROPS * (during + 1) + usual       # never more than 2 in a row
+        after = late_now()
         time.sleep(0.6)
-        assert g.faults.counts["gantry_late_reply"] <= late + MAX_LATE_DROPS   # the slow tail only
+        assert late_now() - after <= usual + MAX_LATE_DROPS, (usual, late_now() - after)   # the slow tail only
         assert not g.latched
     finally:
         launcher.call("faults", spec="")
