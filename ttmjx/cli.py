@@ -161,7 +161,7 @@ class DemosArgs(WorldArgs):
             raise ValueError("--rebuild runs ES and the stages on the MuJoCo C backend (--backend c)")
         if self.rebuild == "stages":
             from ttmjx.tools import es
-            trained = es.read_meta().get("distribution")
+            trained = es.read_meta(es.shipped_dir(self.distribution)).get("distribution")
             if trained != self.distribution:
                 raise ValueError(f"--rebuild stages starts from the shipped ES policy, trained on {trained} throws, "
                                  f"not {self.distribution}: use --rebuild all")
