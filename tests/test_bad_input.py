@@ -78,7 +78,7 @@ def cases():
         ("ablate", "", ["nope", ""]), ("ablate demos", "--seeds", ["0", "-1", "abc"]),
         ("ablate demos", "--scale", ["huge", "gpu"]), ("ablate demos --scale tiny", "--trajectories", ["0", "-5"]),
         ("ablate demos --scale tiny", "--cells", ["nope", "0:99", "3:1", "", ":", "d10,x"]),
-        ("ablate noise --scale tiny --plan", "--cells", ["d10", "20"]),
+        ("ablate noise --scale tiny --plan", "--cells", ["d10", "99"]),
         ("ablate demos --scale tiny", "--out", ["{file}"]),
         ("ablate demos --scale tiny --out {empty}", "--report", ["--report"]),     # nothing finished yet
         ("baseline", "", ["nope", "ppo,qtopt", ""]), ("baseline ppo --scale tiny", "--seeds", ["0", "abc"]),
