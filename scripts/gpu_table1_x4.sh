@@ -15,7 +15,8 @@
 set -uo pipefail
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false TTMJX_JAX_CACHE=/tmp/jaxcache
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"; T=${T1_DIR:-/tmp/t1x4}; mkdir -p "$T/edges"
-TRAJ=${TRAJ:-120000}; SEEDS=${SEEDS:-5}; SCALE=${SCALE:-full}; BOOT=${BOOT:-1}
+TRAJ=${TRAJ:-120000}; SEEDS=${SEEDS:-5}; SCALE=${SCALE:-full}; BOOT=${BOOT:-1}; TESTS=${TESTS:-0}
+SET=${SET:-}   # e.g. SET=demo_source=paper: `ttmjx ablate --set` for every job
 # GPU:job:ablation:cells
 JOBS=${JOBS:-"0:goalseye:practice:goalseye 1:lfp:practice:lfp-equal-updates,lfp-equal-data 2:gcsl:demos:d0 3:d100:demos:d100"}
 pack() {   # $OUT gets two files (a call returns at most 8): table1.tgz and log.txt
@@ -47,7 +48,7 @@ if [[ $mode == start ]]; then
     IFS=: read -r gpu job abl cells <<< "$spec"
     setsid bash -c "cd $PWD; source scripts/gpu_table1_x4.sh lib; export CUDA_VISIBLE_DEVICES=$gpu
       /usr/bin/time -f 'wall %e s, peak rss %M kB' $(cores $((gpu * 4)) $((gpu * 4 + 3))) python3 -m ttmjx.cli ablate $abl \
-        --scale $SCALE --seeds $SEEDS --cells $cells --trajectories $TRAJ --out $T/$abl 2>&1 | stdbuf -oL tr '\r' '\n' \
+        --scale $SCALE --seeds $SEEDS --cells $cells --trajectories $TRAJ ${SET:+--set $SET} --out $T/$abl 2>&1 | stdbuf -oL tr '\r' '\n' \
         | grep --line-buffered -v 'traj/s\|throw/s\|absl\|^\s*$' > $T/$job.log
       touch $T/$job.done; edges $gpu $job $abl $cells; touch $T/$job.edges" </dev/null >/dev/null 2>&1 &
     echo "started $job on GPU $gpu $(date +%T)" | tee -a "$T/log.txt"
@@ -58,14 +59,25 @@ if [[ $mode == start ]]; then
     --out $T/boot_any --json 2>&1 | stdbuf -oL tr '\r' '\n' | grep --line-buffered -v 'absl\|^\s*$' > $T/boot_any.log; touch $T/boot_any.done" \
     </dev/null >/dev/null 2>&1 &
   (( BOOT )) && echo "started boot_any $(date +%T)" | tee -a "$T/log.txt"
+  # TESTS=1: the README's test command on the host's CPU (another x86-64 make than the
+  # developers'), JAX on the CPU, 16 workers on the cores the GPU jobs leave free.
+  if (( TESTS )); then
+    python3 -m pip install -q --no-deps --no-index .wheels/test/{pytest_xdist,execnet,abb_robot_client,pymodbus,websocket_client}*.whl 2>&1 | grep -v -i warn | tail -2
+    python3 -c "import google.protobuf, requests" 2>/dev/null || python3 -m pip install -q --no-deps --no-index .wheels/test/*.whl
+    lscpu | grep -E "Model name|Vendor" | tee -a "$T/log.txt"
+    setsid bash -c "cd $PWD; CUDA_VISIBLE_DEVICES= JAX_PLATFORMS=cpu TTMJX_JAX_CACHE=/tmp/jaxcache_cpu \
+      /usr/bin/time -f 'wall %e s' $(cores 16 $(( $(nproc) - 1 ))) python3 -m pytest -n 12 --durations=20 \
+      --junitxml=$T/tests.xml -p no:cacheprovider > $T/tests.log 2>&1; touch $T/tests.done" </dev/null >/dev/null 2>&1 &
+    echo "started tests $(date +%T)" | tee -a "$T/log.txt"
+  fi
   mode=wait
 fi
 [[ $mode == lib ]] && return 0
 wait_s=$1; t_end=$((SECONDS + wait_s))
 while (( SECONDS < t_end )); do
   pack
-  n=$(ls "$T"/*.edges "$T"/boot_any.done 2>/dev/null | wc -l)
-  (( n >= $(echo $JOBS | wc -w) + BOOT )) && break
+  n=$(ls "$T"/*.edges "$T"/boot_any.done "$T"/tests.done 2>/dev/null | wc -l)
+  (( n >= $(echo $JOBS | wc -w) + BOOT + TESTS )) && break
   sleep 30
 done
 date +%T >> "$T/log.txt"; cp "$T/log.txt" "$OUT/"; pack
