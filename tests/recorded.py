@@ -6,7 +6,7 @@ fused multiply-adds), so a run's float32 numbers agree with a recording to the l
 a processor that rounds alike; through contact physics (a landing moves with the hit's timing)
 even the first evaluation's mean distance differs by percents between processors. So:
 
-* on the processor a recording was made on (its `cpu` below: model and vector extensions), the
+* on the processor a recording was made on (its `cpu` below: model, vector extensions, cores), the
   run must reproduce that recording to float rounding (SAME_REL), every number;
 * on any processor, a run that reproduces a recording to float rounding passes (it rounds alike);
 * on any other processor the run is compared with the recordings within what was measured
@@ -65,7 +65,10 @@ def tiny_recorded(demo_dir, run_dir, **kw):
 
 
 def cpu_identity() -> dict | None:
-    """{"model", "vector_flags"} of this machine's first processor (Linux), else None."""
+    """{"model", "vector_flags", "cores"} of this machine (Linux: its first processor, and the
+    cores this process may use), else None. The cores count because XLA:CPU splits reductions
+    by thread: an Intel Xeon host of the same model and vector flags as the 2-core recording's,
+    with 48 cores, computed the first pretraining loss 7e-5 relative apart."""
     try:
         info = open("/proc/cpuinfo").read()
     except OSError:
@@ -74,7 +77,7 @@ def cpu_identity() -> dict | None:
     fields = {k.strip(): v.strip() for k, v in fields.items()}
     flags = set((fields.get("flags") or fields.get("Features") or "").split())
     model = fields.get("model name") or fields.get("CPU part")
-    return {"model": model, "vector_flags": sorted(flags & set(VECTOR_FLAGS))}
+    return {"model": model, "vector_flags": sorted(flags & set(VECTOR_FLAGS)), "cores": len(os.sched_getaffinity(0))}
 
 
 def on_a_recording_processor() -> bool:

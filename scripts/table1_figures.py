@@ -1,0 +1,64 @@
+"""Figures of a Table I run from its runs' metrics.jsonl: the held-out evaluation during training
+(mean and the band of seeds) and the paper's "good trajectories per 100 seen" (practice episodes
+that were hits landing within 30 cm of their own goal on the opponent's half, per 100 played).
+
+    python3 scripts/table1_figures.py docs/results/table1-120k-paper docs/img/table1-paper.png
+"""
+import glob
+import json
+import os
+import sys
+
+import matplotlib
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+ARMS = {"goalseye": "GoalsEye (3,600 demonstrations)", "d1000": "1,000 demonstrations",
+        "d100": "100 demonstrations", "lfp-equal-updates": "LFP (3,600, no practice)"}
+
+
+def runs_of(root: str, arm: str) -> list[list[dict]]:
+    paths = sorted(glob.glob(os.path.join(root, "*", "runs", f"{arm}-seed*", "metrics.jsonl")))
+    return [[json.loads(line) for line in open(p) if line.strip()] for p in paths]
+
+
+def series(rows: list[dict], key: str, x: str) -> tuple[np.ndarray, np.ndarray]:
+    pts = [(r[x], r[key]) for r in rows if key in r]
+    return np.array([p[0] for p in pts], float), np.array([p[1] for p in pts], float) * 100
+
+
+def main(root: str, out: str) -> None:
+    fig, (ax_eval, ax_good) = plt.subplots(1, 2, figsize=(12, 4.5))
+    for arm, label in ARMS.items():
+        runs = runs_of(root, arm)
+        if not runs:
+            continue
+        x_key = "updates" if arm.startswith("lfp") else "trajectories"
+        curves = [series(r, "eval_within_30cm", x_key) for r in runs]
+        n = min(len(c[0]) for c in curves)
+        xs, ys = curves[0][0][:n], np.stack([c[1][:n] for c in curves])
+        if arm.startswith("lfp"):   # LFP's data is fixed: its points at GoalsEye's update counts
+            xs = np.array([r["trajectories"] for r in runs_of(root, "goalseye")[0] if "eval_within_30cm" in r][:n])
+        line, = ax_eval.plot(xs, ys.mean(0), label=f"{label}, {len(runs)} seeds")
+        ax_eval.fill_between(xs, ys.min(0), ys.max(0), color=line.get_color(), alpha=0.2)
+        good = [series(r, "practice_within_30cm", "trajectories") for r in runs]
+        if len(good[0][0]):
+            m = min(len(g[0]) for g in good)
+            gy = np.stack([g[1][:m] for g in good])
+            ax_good.plot(good[0][0][:m], gy.mean(0), color=line.get_color(), label=label)
+            ax_good.fill_between(good[0][0][:m], gy.min(0), gy.max(0), color=line.get_color(), alpha=0.2)
+    ax_eval.set(xlabel="trajectories (LFP: at GoalsEye's update count)", ylabel="% within 30 cm (held-out goals)",
+                title="evaluation during training (mean, band: min-max of seeds)")
+    ax_good.set(xlabel="trajectories", ylabel="good trajectories per 100 seen",
+                title="practice: hits landing within 30 cm of their goal")
+    for ax in (ax_eval, ax_good):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    print(out)
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:3])
