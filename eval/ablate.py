@@ -58,6 +58,23 @@ def goalseye_updates(base: RunConfig) -> int:
     return (pretrain_iterations(base) + practice_iterations(base)) * base.steps_between_ssp
 
 
+def per_round(ratio: float) -> Derived:
+    """episodes_per_ssp (M) giving `ratio` gradient updates per practice trajectory at the base's
+    steps_between_ssp (S), rounded to a multiple of the members."""
+    def m(base: RunConfig) -> int:
+        members = base.train.members
+        return max(members, round(base.steps_between_ssp / ratio / members) * members)
+    return Derived(f"steps_between_ssp / {ratio} episodes, a multiple of the members", m)
+
+
+def checkpoint_cadence(ratio: float) -> Derived:
+    """checkpoint_every scaled with the round (`per_round`), so a cell saves as often per episode
+    as its base run (a pool saved every 5 rounds of 200 would be saved 20x as often)."""
+    return Derived("the base's checkpoint cadence in episodes",
+                   lambda base: max(1, round(base.checkpoint_every * base.episodes_per_ssp
+                                             / per_round(ratio).fn(base))))
+
+
 ALL_TRAJECTORIES = Derived("the base run's total_trajectories", lambda base: base.total_trajectories)
 GOALSEYE_UPDATES = Derived("the base GoalsEye run's gradient updates", goalseye_updates)
 
@@ -212,6 +229,13 @@ ABLATIONS: dict[str, Ablation] = {
         {"goalseye": {}, "lfp-equal-updates": {"practice": False},
          "lfp-equal-data": {"practice": False, "demos": ALL_TRAJECTORIES, "pretrain_steps": GOALSEYE_UPDATES}},
         x="updates"),
+    # The paper publishes neither S (updates per practice round) nor M (episodes per round); the
+    # presets' 200 per 4,000 (0.05 updates per practice trajectory) is this project's. The sweep
+    # changes M at the base's S, so pretraining (rounds of S updates) is the same in every cell.
+    "ratio": Ablation(
+        "gradient updates per practice trajectory (S / M: M changed, S the base's)", "sim",
+        {f"r{r}": {"episodes_per_ssp": per_round(r), "checkpoint_every": checkpoint_cadence(r)}
+         for r in (0.05, 0.2, 1)}),
 }
 ABLATION_NAMES = tuple(ABLATIONS)
 

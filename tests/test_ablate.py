@@ -50,6 +50,19 @@ def test_derived_overrides_follow_the_base():
     assert same_data.demos == goalseye.total_trajectories == 328 and not same_data.practice
 
 
+def test_the_ratio_sweep_changes_updates_per_trajectory_and_nothing_before_practice():
+    from training.trainer import pretrain_iterations
+    base = ablate.full_base("sim")
+    for variant, ratio in (("r0.05", 0.05), ("r0.2", 0.2), ("r1", 1.0)):
+        cfg = ablate.variant_config("ratio", variant, "full", 0, "r", trajectories=120_000)
+        assert cfg.steps_between_ssp / cfg.episodes_per_ssp == pytest.approx(ratio)
+        assert (cfg.steps_between_ssp, cfg.pretrain_steps, pretrain_iterations(cfg), cfg.demos) == \
+            (base.steps_between_ssp, base.pretrain_steps, pretrain_iterations(base), base.demos)
+        # a checkpoint as often per practice episode as the base run's
+        assert cfg.checkpoint_every * cfg.episodes_per_ssp == base.checkpoint_every * base.episodes_per_ssp
+    assert ablate.variant_config("ratio", "r0.05", "full", 0, "r").episodes_per_ssp == base.episodes_per_ssp
+
+
 def test_invalid_variants_are_named():
     with pytest.raises(ValueError, match=r"^RunConfig has no field 'nope'"):
         ablate.apply(ablate.SCALES["tiny"].base("sim"), {"nope.x": 1})

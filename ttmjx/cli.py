@@ -239,7 +239,7 @@ class AblateArgs(Report):
     skipped, a half-finished one resumes from its checkpoint."""
     BOUNDS: ClassVar[dict] = {"seeds": (1, 1000), "trajectories": (1, None)}
     name: Annotated[Literal[ABLATION_NAMES], tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
-    """The ablation: demos, noise, ensembles, inputs, bootstrap or practice."""
+    """The ablation: demos, noise, ensembles, inputs, bootstrap, practice or ratio."""
     scale: Literal["auto", *SCALE_NAMES] = "auto"
     """tiny (tests), cpu (2 CPU cores) or full (paper-sim-like, one GPU per cell); auto: full on an accelerator."""
     seeds: int = 5
