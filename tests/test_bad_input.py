@@ -598,36 +598,49 @@ def test_a_torn_metrics_line_is_said_on_resume_and_the_rows_kept(recorded_tiny_r
     assert metrics.read_text() == whole
 
 
-def test_a_stop_that_lands_in_a_collector_callback_is_sent_again():
-    """JAX registers a garbage-collector callback, and an exception raised inside a callback is
-    printed and dropped: a SIGTERM or Ctrl-C that lands there must still stop the command."""
+def test_a_stop_that_lands_where_python_drops_exceptions_is_sent_again():
+    """An exception raised in a garbage-collector callback (JAX registers one), a weakref callback
+    or a finalizer is printed and dropped: a SIGTERM or Ctrl-C whose handler runs there must
+    still stop the command."""
     import gc
     import threading
+    import weakref
     from ttmjx import commandline
     if threading.current_thread() is not threading.main_thread():
         pytest.skip("signals reach only the main thread")
 
-    def stops(sig, stop):
+    def in_gc_callback(send):
+        def callback(phase, info):
+            if phase == "start":
+                gc.callbacks.remove(callback)
+                send()
+        gc.callbacks.append(callback)
+        gc.collect()
+
+    def in_weakref_callback(send):
+        class Thing:
+            pass
+        thing = Thing()
+        ref = weakref.ref(thing, lambda r: send())   # noqa: F841 (kept alive until thing dies)
+        del thing
+
+    def stops(sig, stop, where):
         sent = []
 
-        def callback(phase, info):
-            if phase == "start" and not sent:
-                sent.append(sig)
-                os.kill(os.getpid(), sig)       # its handler runs at the next bytecode: in here
-                sum(range(10_000))
-        gc.callbacks.append(callback)
-        try:
-            with pytest.raises(stop):
-                with commandline.stop_on_sigterm():
-                    gc.collect()
-                    time.sleep(2)               # the signal sent again lands here
-        finally:
-            gc.callbacks.remove(callback)
-        assert sent == [sig]
+        def send():
+            sent.append(sig)
+            os.kill(os.getpid(), sig)       # its handler runs at the next bytecode: in the callback
+            sum(range(10_000))
+        with pytest.raises(stop):
+            with commandline.stop_on_sigterm():
+                where(send)
+                time.sleep(2)               # the signal sent again lands here
+        assert sent == [sig], where
 
-    stops(signal.SIGTERM, commandline.Stopped)
     before = signal.signal(signal.SIGINT, signal.default_int_handler)   # as in a terminal (see above)
     try:
-        stops(signal.SIGINT, KeyboardInterrupt)
+        for where in (in_gc_callback, in_weakref_callback):
+            stops(signal.SIGTERM, commandline.Stopped, where)
+            stops(signal.SIGINT, KeyboardInterrupt, where)
     finally:
         signal.signal(signal.SIGINT, before)

@@ -214,51 +214,35 @@ class Stopped(BaseException):
 def stop_on_sigterm():
     """SIGTERM raises Stopped (a KeyboardInterrupt's counterpart) while the command runs, so it
     unwinds like Ctrl-C: outputs written through a temporary name stay whole or absent, what was
-    saved (checkpoints, episode logs) stays, and main exits 143 with one line. Either signal is
-    sent again if it lands in a collector callback (`deferred`)."""
+    saved (checkpoints, episode logs) stays, and main exits 143 with one line. A stop raised
+    where Python drops exceptions (a collector or weakref callback, a finalizer: JAX has them)
+    is sent again (`resent`)."""
     import signal
     import threading
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
-    def on_sigterm(signum, frame):
-        if not deferred(signum, frame):
-            raise Stopped(signum)
-
-    def on_sigint(signum, frame):
-        if not deferred(signum, frame):
-            raise KeyboardInterrupt
-    old = signal.signal(signal.SIGTERM, on_sigterm)
-    old_int = signal.signal(signal.SIGINT, on_sigint) if signal.getsignal(signal.SIGINT) is signal.default_int_handler \
-        else None
+    def handler(signum, frame):
+        raise Stopped(signum)
+    old, old_hook = signal.signal(signal.SIGTERM, handler), sys.unraisablehook
+    sys.unraisablehook = lambda u: resent(u) or old_hook(u)
     try:
         yield
     finally:
         signal.signal(signal.SIGTERM, old)
-        if old_int is not None:
-            signal.signal(signal.SIGINT, old_int)
+        sys.unraisablehook = old_hook
 
 
-def in_gc_callback(frame) -> bool:
-    """Whether `frame` runs inside a garbage-collector callback (JAX registers one): an exception
-    raised there is printed as "Exception ignored" and dropped, so a stop raised there is lost."""
-    import gc
-    codes = {getattr(cb, "__code__", None) for cb in gc.callbacks} - {None}
-    while frame is not None:
-        if frame.f_code in codes:
-            return True
-        frame = frame.f_back
-    return False
-
-
-def deferred(signum: int, frame) -> bool:
-    """If the signal came during a collector callback, send it again 10 ms later (after the
-    collection, or deferred again) and return True; else False."""
-    if not in_gc_callback(frame):
-        return False
-    import os
+def resent(unraisable) -> bool:
+    """If a dropped exception (sys.unraisablehook's argument) is a stop, send its signal again
+    10 ms later, when the callback is over, and return True; else False."""
+    import signal
     import threading
+    e = unraisable.exc_value
+    signum = e.signum if isinstance(e, Stopped) else signal.SIGINT if isinstance(e, KeyboardInterrupt) else None
+    if signum is None:
+        return False
     timer = threading.Timer(0.01, os.kill, (os.getpid(), signum))
     timer.daemon = True
     timer.start()
