@@ -226,36 +226,40 @@ def test_resume_refuses_a_different_config(trained, demo_dir):
         Run(cfg, progress=False).run()
 
 
-def test_eval_cli_reports_json_metrics(trained):
+def test_eval_cli_reports_json_metrics(trained, capsys):
+    """`ttmjx eval`'s JSON line. The two evaluations run the command line in this process
+    (ttmjx.cli.main: the command's own parsing, output and exit; a failure raises SystemExit),
+    where the programs traced for one serve the next: a fresh process traces them again (~30 s
+    each on 2 cores). The refusal runs the real entry point in a fresh process, for its exit
+    code."""
+    from ttmjx.cli import main
     run_dir, _ = trained
-    out = subprocess.run([sys.executable, "-m", "ttmjx.cli", "eval", str(run_dir), "--goals", "20", "--json"],
-                         capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stderr
-    res = json.loads(out.stdout.strip().splitlines()[-1])
+    capsys.readouterr()
+    main(["eval", str(run_dir), "--goals", "20", "--json"])
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert set(res) >= {"within_30cm", "within_20cm", "mean_dist", "hit_rate", "goals"}
     assert res["goals"] == 20 and 0 <= res["within_20cm"] <= res["within_30cm"] <= 1
-    five = subprocess.run([sys.executable, "-m", "ttmjx.cli", "eval", str(run_dir), "--goals", "five",
-                           "--per-goal", "2", "--json"], capture_output=True, text=True, timeout=600)
-    assert five.returncode == 0, five.stderr
-    res5 = json.loads(five.stdout.strip().splitlines()[-1])
+    main(["eval", str(run_dir), "--goals", "five", "--per-goal", "2", "--json"])
+    res5 = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert sorted(res5["per_goal"]) == ["A", "B", "C", "D", "E"] and res5["goals"] == 10
     bad = subprocess.run([sys.executable, "-m", "ttmjx.cli", "eval", "/nonexistent/run"], capture_output=True,
                          text=True, timeout=120)
     assert bad.returncode == 2 and "does not exist" in bad.stderr
 
 
-def test_robot_practice_closes_the_loop(trained, demo_dir, tmp_path):
+def test_robot_practice_closes_the_loop(trained, demo_dir, tmp_path, capsys):
     """play -> log -> relabel -> train -> export -> play: the trained run is exported, plays
     episodes on the simulated station through the robot runner, and a resumed run trains on
     the relabeled logs."""
+    from ttmjx.entry import main     # the console script's entry, in this process (see the eval test)
     run_dir, _ = trained
     exp = str(tmp_path / "export")
     logs = str(tmp_path / "logs")
-    assert ttmjx_cli("export", str(run_dir), "--out", exp, "--member", "0").returncode == 0
-    played = ttmjx_cli("robot", "run", "--policy", exp, "--station", "sim", "--goals", "0.7,0.3;0.5,-0.4",
-                       "--n", "2", "--out", logs, "--json")
-    assert played.returncode == 0, played.stderr[-2000:]
-    res = json.loads(played.stdout.strip().splitlines()[-1])
+    main(["export", str(run_dir), "--out", exp, "--member", "0"])          # a failure raises SystemExit
+    capsys.readouterr()
+    main(["robot", "run", "--policy", exp, "--station", "sim", "--goals", "0.7,0.3;0.5,-0.4", "--n", "2",
+          "--out", logs, "--json"])
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert res["episodes"] == 4 and {"within_30cm", "within_20cm", "hit_rate"} <= set(res["metrics"])
     assert res["violations_true_limits"]["range"] == 0 and res["violations_true_limits"]["rate"] == 0
     # Resume a copy of the run with the logs: they are relabeled into the cache.
@@ -279,10 +283,6 @@ def test_robot_practice_closes_the_loop(trained, demo_dir, tmp_path):
     practice_kept = json.loads(open(os.path.join(resumed, "metrics.jsonl")).read().splitlines()[-1])["practice_kept"]
     assert int(again.cache.count) == int(after.cache.count) + int(practice_kept)
     assert int(again.counters.trajectories) == int(after.counters.trajectories) + cfg.episodes_per_ssp
-
-
-def ttmjx_cli(*args):
-    return subprocess.run([sys.executable, "-m", "ttmjx.cli", *args], capture_output=True, text=True, timeout=900)
 
 
 def test_gcsl_starts_from_zero_demonstrations(tmp_path):
