@@ -364,6 +364,16 @@ def one_line_error(done, code: int, prefix: str, *words):
     return msg
 
 
+def one_line_error_here(args, code: int, prefix: str, *words):
+    """one_line_error for `ttmjx ARGS` run in this process (run_here), as the tables above run
+    their refusals; AS_SUBPROCESS and the robot side's bounds below are met in fresh processes."""
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err), \
+            pytest.raises(SystemExit) as ex:
+        run_here(*args)
+    return one_line_error(subprocess.CompletedProcess(args, ex.value.code, "", err.getvalue()), code, prefix, *words)
+
+
 def stop_when(proc: subprocess.Popen, ready, sig=signal.SIGTERM, timeout=240) -> subprocess.CompletedProcess:
     """Send `sig` to `proc` once ready() holds; its exit code and output."""
     t0 = time.monotonic()
@@ -483,29 +493,30 @@ def test_the_robot_side_names_its_bounds_at_the_door():
 def test_outputs_that_hold_something_else_are_refused_naming_it(recorded_tiny_run, tiny_export, tmp_path):
     """ablate --out, robot run --out (on the simulated or the fake station) and robot sweep --out
     pointing at a training run (or an export): refused with the directory and what it holds,
-    nothing written there."""
+    nothing written there. In this process (one_line_error_here): refusals before any work."""
     run_dir = str(recorded_tiny_run[0])
     before = listing(run_dir)
-    one_line_error(run("ablate", "practice", "--scale", "tiny", "--seeds", "1", "--out", run_dir, "--plan"), 2,
-                   "ttmjx ablate: error:", run_dir, "a training run", "checkpoints/")
-    one_line_error(run("robot", "run", "--policy", tiny_export, "--station", "sim", "--goals", "five", "--out", run_dir),
-                   2, "ttmjx robot run: error:", run_dir, "a training run", "config.json")
-    one_line_error(run("robot", "run", "--station", "fake", "--goals", "five", "--out", run_dir), 2,
-                   "ttmjx robot run: error:", run_dir, "a training run")
-    one_line_error(run("robot", "run", "--station", "fake", "--goals", "five", "--out", tiny_export), 2,
-                   "ttmjx robot run: error:", tiny_export, "an export")
-    one_line_error(run("robot", "sweep", "--policy", tiny_export, "--out", run_dir), 2, "ttmjx robot sweep: error:",
-                   run_dir, "config.json")
+    one_line_error_here(["ablate", "practice", "--scale", "tiny", "--seeds", "1", "--out", run_dir, "--plan"], 2,
+                        "ttmjx ablate: error:", run_dir, "a training run", "checkpoints/")
+    one_line_error_here(["robot", "run", "--policy", tiny_export, "--station", "sim", "--goals", "five", "--out",
+                         run_dir], 2, "ttmjx robot run: error:", run_dir, "a training run", "config.json")
+    one_line_error_here(["robot", "run", "--station", "fake", "--goals", "five", "--out", run_dir], 2,
+                        "ttmjx robot run: error:", run_dir, "a training run")
+    one_line_error_here(["robot", "run", "--station", "fake", "--goals", "five", "--out", tiny_export], 2,
+                        "ttmjx robot run: error:", tiny_export, "an export")
+    one_line_error_here(["robot", "sweep", "--policy", tiny_export, "--out", run_dir], 2, "ttmjx robot sweep: error:",
+                        run_dir, "config.json")
     assert listing(run_dir) == before
 
 
 def test_robot_sweep_has_no_config_option_and_list_lengths_are_checked():
-    one_line_error(run("robot", "sweep", "--policy", RUN, "--out", "x", "--config", "cell.toml"), 2,
-                   "ttmjx robot sweep: error:", "--config")
-    one_line_error(run("train", "--preset", "tiny", "--world.throws.narrow-launch", "1.75", "0.35"), 2,
-                   "ttmjx train: error:", "--world.throws.narrow-launch", "3 values", "got 2")
-    one_line_error(run("train", "--preset", "tiny", "--world.robot.lower", "1", "1"), 2,
-                   "ttmjx train: error:", "--world.robot.lower", "8 entries", "got 2")
+    """Refused while parsing, in this process (one_line_error_here)."""
+    one_line_error_here(["robot", "sweep", "--policy", RUN, "--out", "x", "--config", "cell.toml"], 2,
+                        "ttmjx robot sweep: error:", "--config")
+    one_line_error_here(["train", "--preset", "tiny", "--world.throws.narrow-launch", "1.75", "0.35"], 2,
+                        "ttmjx train: error:", "--world.throws.narrow-launch", "3 values", "got 2")
+    one_line_error_here(["train", "--preset", "tiny", "--world.robot.lower", "1", "1"], 2,
+                        "ttmjx train: error:", "--world.robot.lower", "8 entries", "got 2")
 
 
 def can_mount_tmpfs() -> bool:
