@@ -30,8 +30,19 @@ def last_json(out):
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def test_throw_json_reports_frame_and_simulated_bounces():
-    res = last_json(ttmjx("throw", "--distribution", "any", "--n", "5", "--seed", "3", "--json"))
+def here(capsys, *args) -> dict:
+    """`ttmjx ARGS --json` in this process (ttmjx.cli.main: the command's own parsing, work and
+    output; a failure raises SystemExit with its exit code) -> its JSON last line. For commands
+    whose result is under test, not their process: a fresh one pays ~5 s of imports and traces
+    its programs again. Exit codes and stderr as a user sees them stay in fresh processes
+    (ttmjx above)."""
+    capsys.readouterr()
+    main(list(args))
+    return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+
+def test_throw_json_reports_frame_and_simulated_bounces(capsys):
+    res = here(capsys, "throw", "--distribution", "any", "--n", "5", "--seed", "3", "--json")
     assert res["frame"] == {"table_top_z": 0.76, "table_x": [-1.37, 1.37], "table_y": [-0.7625, 0.7625]}
     assert len(res["throws"]) == 5
     for t in res["throws"]:
@@ -46,11 +57,10 @@ def test_bench_c_reports_rates_against_the_raw_rollout_baseline():
         assert res[k] > 0, k
 
 
-def test_demos_dataset_plot_and_no_overwrite(tmp_path):
+def test_demos_dataset_plot_and_no_overwrite(tmp_path, capsys):
     out = str(tmp_path / "d")
     # The striker (the default before issue 22; `paper` in tests/test_paper_bootstrap.py).
-    res = last_json(ttmjx("demos", "--source", "striker", "--distribution", "narrow", "--n", "24", "--out", out,
-                          "--json"))
+    res = here(capsys, "demos", "--source", "striker", "--distribution", "narrow", "--n", "24", "--out", out, "--json")
     assert set(res) == {"n", "hit_rate", "return_rate", "coverage", "area_within_30cm", "landing_std_x",
                         "landing_std_y", "seconds"} and res["n"] == 24
     assert res["hit_rate"] >= 0.9  # the issue's narrow threshold, on a small sample
@@ -60,7 +70,7 @@ def test_demos_dataset_plot_and_no_overwrite(tmp_path):
     assert meta["schema_version"] == record.SCHEMA_VERSION and "code_version" in meta
     again = ttmjx("demos", "--n", "4", "--out", out)
     assert again.returncode == 2 and "already holds files" in again.stderr
-    png = last_json(ttmjx("plot-landings", out, "--json"))["plot"]
+    png = here(capsys, "plot-landings", out, "--json")["plot"]
     assert os.path.getsize(png) > 10_000
 
 

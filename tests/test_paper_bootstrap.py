@@ -205,16 +205,16 @@ def test_each_throw_distribution_gets_its_own_shipped_build_and_no_other():
         bootstrap.load_policy(World().with_throws("varied"))
 
 
-def test_cli_demos_paper_writes_the_two_maps(tmp_path):
+def test_cli_demos_paper_writes_the_two_maps(tmp_path, capsys):
     """`ttmjx demos` (source `paper`, the default) gathers with the shipped weights and reports
-    the narrow ES policy's numbers beside the dataset's; the figure holds both maps."""
-    import subprocess
-    import sys
+    the narrow ES policy's numbers beside the dataset's; the figure holds both maps. The command
+    line runs in this process (ttmjx.cli.main; a failure raises SystemExit with its exit code),
+    without a fresh process's imports and tracing of what this module's other tests traced."""
+    from ttmjx.cli import main
     out = str(tmp_path / "d")
-    r = subprocess.run([sys.executable, "-m", "ttmjx.cli", "demos", "--n", "16", "--out", out, "--json"],
-                       capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
-    res = json.loads(r.stdout.strip().splitlines()[-1])
+    capsys.readouterr()
+    main(["demos", "--n", "16", "--out", out, "--json"])
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert res["n"] == 16 and res["narrow_n"] == 16 and 0 <= res["narrow_return_rate"] <= 1
     traj, meta = record.load(out)
     assert meta["source"] == "paper" and meta["source_version"] == demos.SOURCE_VERSION and traj.size == 16
