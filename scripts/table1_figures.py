@@ -28,26 +28,30 @@ def series(rows: list[dict], key: str, x: str) -> tuple[np.ndarray, np.ndarray]:
     return np.array([p[0] for p in pts], float), np.array([p[1] for p in pts], float) * 100
 
 
+def band(ax, curves: list[tuple[np.ndarray, np.ndarray]], xs: np.ndarray | None = None, **kw):
+    """Mean over seeds as a line, min-max as a band, over the points every seed has; its line."""
+    n = min(len(c[0]) for c in curves)
+    ys = np.stack([c[1][:n] for c in curves])
+    xs = curves[0][0][:n] if xs is None else xs[:n]
+    line, = ax.plot(xs, ys.mean(0), **kw)
+    ax.fill_between(xs, ys.min(0), ys.max(0), color=line.get_color(), alpha=0.2)
+    return line
+
+
 def main(root: str, out: str) -> None:
     fig, (ax_eval, ax_good) = plt.subplots(1, 2, figsize=(12, 4.5))
+    goalseye_x = series(runs_of(root, "goalseye")[0], "eval_within_30cm", "trajectories")[0]
     for arm, label in ARMS.items():
         runs = runs_of(root, arm)
         if not runs:
             continue
-        x_key = "updates" if arm.startswith("lfp") else "trajectories"
-        curves = [series(r, "eval_within_30cm", x_key) for r in runs]
-        n = min(len(c[0]) for c in curves)
-        xs, ys = curves[0][0][:n], np.stack([c[1][:n] for c in curves])
-        if arm.startswith("lfp"):   # LFP's data is fixed: its points at GoalsEye's update counts
-            xs = np.array([r["trajectories"] for r in runs_of(root, "goalseye")[0] if "eval_within_30cm" in r][:n])
-        line, = ax_eval.plot(xs, ys.mean(0), label=f"{label}, {len(runs)} seeds")
-        ax_eval.fill_between(xs, ys.min(0), ys.max(0), color=line.get_color(), alpha=0.2)
+        # LFP's data is fixed: its points are drawn at GoalsEye's trajectories of the same update count
+        xs = goalseye_x if arm.startswith("lfp") else None
+        line = band(ax_eval, [series(r, "eval_within_30cm", "trajectories") for r in runs], xs,
+                    label=f"{label}, {len(runs)} seeds")
         good = [series(r, "practice_within_30cm", "trajectories") for r in runs]
         if len(good[0][0]):
-            m = min(len(g[0]) for g in good)
-            gy = np.stack([g[1][:m] for g in good])
-            ax_good.plot(good[0][0][:m], gy.mean(0), color=line.get_color(), label=label)
-            ax_good.fill_between(good[0][0][:m], gy.min(0), gy.max(0), color=line.get_color(), alpha=0.2)
+            band(ax_good, good, color=line.get_color(), label=label)
     ax_eval.set(xlabel="trajectories (LFP: at GoalsEye's update count)", ylabel="% within 30 cm (held-out goals)",
                 title="evaluation during training (mean, band: min-max of seeds)")
     ax_good.set(xlabel="trajectories", ylabel="good trajectories per 100 seen",
