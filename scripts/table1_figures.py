@@ -1,4 +1,5 @@
-"""Figures of a Table I run from its runs' metrics.jsonl: the held-out evaluation during training
+"""Figures of a Table I run from its runs' metrics.jsonl (and, printed, the mean +- 95% interval
+over seeds of each arm on the edges-and-net goal set, from ROOT/edges/*.json): the held-out evaluation during training
 (mean and the band of seeds) and the paper's "good trajectories per 100 seen" (practice episodes
 that were hits landing within 30 cm of their own goal on the opponent's half, per 100 played).
 
@@ -64,5 +65,17 @@ def main(root: str, out: str) -> None:
     print(out)
 
 
+def edges_table(root: str) -> None:
+    """Print each arm's mean +- 95% interval (Student's t) over seeds on the edges-and-net goals."""
+    from eval.tables import interval
+    for arm in ARMS:
+        rows = [json.load(open(p)) for p in sorted(glob.glob(os.path.join(root, "edges", f"*-{arm}-seed*.json")))]
+        if rows:
+            stats = {k: interval([r[k] for r in rows]) for k in ("within_30cm", "within_20cm", "hit_rate")}
+            cells = [f"{k} {100 * v['mean']:.1f} +- {100 * (v['half'] or 0):.1f}" for k, v in stats.items()]
+            print(f"edges_net {arm} ({len(rows)} seeds): " + ", ".join(cells))
+
+
 if __name__ == "__main__":
     main(*sys.argv[1:3])
+    edges_table(sys.argv[1])
