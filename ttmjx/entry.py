@@ -4,6 +4,7 @@ robot's computer with `pip install 'ttmjx[robot]'` runs them; every other comman
 --station sim`, goes to the simulator side's command line (ttmjx/cli.py)."""
 from __future__ import annotations
 
+import os
 import sys
 
 ROBOT_SIDE = ("robot run", "robot bench")
@@ -22,7 +23,8 @@ def on_robot_side(argv: list[str]) -> bool:
 
 
 def main(argv: list[str] | None = None) -> None:
-    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv is None:
+        return as_process(sys.argv[1:])
     if on_robot_side(argv):
         from deploy.robot.cli import main as robot_main
         return robot_main(argv)
@@ -36,6 +38,21 @@ def main(argv: list[str] | None = None) -> None:
              f"{e.name} is not installed: this command needs the simulator side (pip install 'ttmjx[sim]'); "
              f"this install runs `ttmjx robot run --station fake|cell` and `ttmjx robot bench`")
     cli.main(argv)
+
+
+def as_process(argv: list[str]) -> None:
+    """main(argv) as the process's own command. A failure of the machine (exit 1: a full disk, a
+    permission) ends the process at once after its one line: library threads whose writes were
+    failing with it (tensorstore's, under an Orbax save) would print tracebacks after that line
+    while Python shuts down."""
+    try:
+        main(argv)
+    except SystemExit as e:
+        if e.code != 1:
+            raise
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(1)
 
 
 if __name__ == "__main__":
