@@ -301,10 +301,11 @@ def test_trains_evaluates_and_exports(method, tmp_path, monkeypatch):
     out = str(tmp_path / "table")
     n = 4 if method == "es" else 2    # ES: 2 episodes per epoch, 2 epochs
     summary = baselines.run([method], "tiny", 1, out, trajectories=n, progress=False)
-    # SAC, ES: brax's evaluator ran at each of the 3 curve points on one compiled unroll
-    # (agents._plain); PPO: brax's evaluator is off (the strict-metric curve replaces it)
-    assert len(evaluators) == 1
-    assert evaluators[0]._generate_eval_unroll._cache_size() == (0 if method == "ppo" else 1)
+    # SAC: brax's evaluator ran at each of the 3 curve points on one compiled unroll
+    # (agents._plain); PPO: brax's evaluator is off; ES runs none (the strict-metric curve
+    # replaces it)
+    assert len(evaluators) == (0 if method == "es" else 1)
+    assert [e._generate_eval_unroll._cache_size() for e in evaluators] == {"ppo": [0], "sac": [1], "es": []}[method]
     result = json.load(open(os.path.join(out, "results", f"{method}-seed0.json")))
     assert result["final"]["goals"] == tiny().eval_goals and 0 <= result["final"]["hit_rate"] <= 1
     assert result["config"]["method"] == method and result["config"]["run"]["total_trajectories"] == n
@@ -351,3 +352,66 @@ def test_gcsl_and_lfp_are_the_presets():
 def test_first_seed_plans_the_later_seeds_of_one_table(tmp_path):
     cells = baselines.plan(["gcsl"], "tiny", 2, str(tmp_path), first_seed=3)
     assert [(c.name, c.seed, c.config.seed) for c in cells] == [("gcsl-seed3", 3, 3), ("gcsl-seed4", 4, 4)]
+
+
+# -- ES with its state outside brax's call (training/baselines/es.py) ---------------------------
+def es_run(tmp_path, name: str, stop_after: int | None = None, monkeypatch=None):
+    """ES at the tiny scale, 4 trajectories (2 epochs, points at 0, 320, 640 steps), in
+    tmp_path/name; stop_after: a Ctrl-C right after the checkpoint of that step is written.
+    Returns ((normalizer, policy), [point steps], timing)."""
+    from training.baselines import es
+    cfg = baselines.method_config("es", "tiny", 0, str(tmp_path / name), trajectories=4)
+    s = agents.schedule(cfg)
+    if stop_after is not None:
+        real = es.save
+
+        def save_then_stop(directory, state, points, cfg_json):
+            real(directory, state, points, cfg_json)
+            if int(state.num_env_steps) == stop_after:
+                raise KeyboardInterrupt
+        monkeypatch.setattr(es, "save", save_then_stop)
+    points, timing = [], {}
+    out = es.train(cfg, s.num_timesteps, s.num_evals, cfg.run.run_dir, agents.es_state_json(cfg),
+                   lambda step, n, p: points.append(step), timing=timing)
+    return out, points, timing
+
+
+def test_es_is_brax_es_train_bit_for_bit(tmp_path):
+    """The loop with its state outside the call computes what brax 0.14.2's es.train computes
+    (same seed, network, environment and budget): the same final statistics and policy."""
+    import functools
+
+    from brax.training.agents.es import train as brax_es
+
+    from training.baselines.env import wrap_fresh
+    ours, points, _ = es_run(tmp_path, "ours")
+    cfg = baselines.method_config("es", "tiny", 0, str(tmp_path / "brax"), trajectories=4)
+    s = agents.schedule(cfg)
+    _, theirs, _ = brax_es.train(environment=GoalEnv(cfg.run.world, cfg.reward), num_timesteps=s.num_timesteps,
+                                 episode_length=WORLD.horizon, wrap_env_fn=functools.partial(wrap_fresh, pool=cfg.throw_pool),
+                                 normalize_observations=True, seed=0, num_evals=s.num_evals,
+                                 num_eval_envs=cfg.num_eval_envs, deterministic_eval=True,
+                                 population_size=cfg.es.population_size, perturbation_std=cfg.es.perturbation_std,
+                                 learning_rate=cfg.es.learning_rate, network_factory=agents.es_networks(cfg))
+    assert points == [0, 2 * WORLD.horizon, 4 * WORLD.horizon]
+    for a, b in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_a_stopped_es_run_resumes_to_the_uninterrupted_result(tmp_path, monkeypatch):
+    """Stopped right after its first epoch's checkpoint, the same call resumes from it (one epoch
+    left to run, the earlier curve points given back) and ends bit-for-bit where the
+    uninterrupted run ends; a checkpoint of other settings is refused, naming what differs."""
+    from training.baselines import es
+    whole, whole_points, _ = es_run(tmp_path, "whole")
+    with pytest.raises(KeyboardInterrupt):
+        es_run(tmp_path, "cut", stop_after=2 * WORLD.horizon, monkeypatch=monkeypatch)
+    monkeypatch.undo()
+    resumed, points, timing = es_run(tmp_path, "cut")
+    assert points == whole_points and len(timing["epochs"]) == 1
+    for a, b in zip(jax.tree.leaves(resumed), jax.tree.leaves(whole), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    cfg = baselines.method_config("es", "tiny", 0, str(tmp_path / "cut"), trajectories=4)
+    other = dataclasses.replace(cfg, es=dataclasses.replace(cfg.es, learning_rate=0.5))
+    with pytest.raises(ValueError, match="another configuration .*differs in es"):
+        es.resume(str(tmp_path / "cut" / es.STATE_DIR), other, agents.es_state_json(other))

@@ -1,6 +1,7 @@
-"""PPO, SAC and ES from brax's own trainers on GoalEnv, configured, not rewritten; their policy
-saved as a GoalsEye checkpoint (training/checkpoint.py) so `ttmjx eval` and `ttmjx export` read
-it unchanged.
+"""PPO, SAC and ES from brax's own trainers on GoalEnv, configured, not rewritten (ES: brax's epoch
+with its state outside the call, so it checkpoints and resumes: training/baselines/es.py); their
+policy saved as a GoalsEye checkpoint (training/checkpoint.py) so `ttmjx eval` and `ttmjx export`
+read it unchanged.
 
 Configuration choices (the rest are brax's defaults):
 
@@ -23,9 +24,10 @@ Configuration choices (the rest are brax's defaults):
   120,000 exact for every method: PPO's batch is 4,000 episodes (4,000 environments x 160 steps), ES's 2 x 1,000;
 * PPO: brax's own evaluator is off (`run_evals=False`): the strict-metric curve below replaces it,
   and it cost a sequential episode per point;
-* learning-curve points: PPO hands its policy to policy_params_fn at every epoch; SAC and ES
-  only to their evaluator (brax.training.acting.Evaluator.run_evaluation), just before each
-  progress_fn(step, metrics) call, so `_capturing_evaluations` wraps that method for the
+* learning-curve points: PPO hands its policy to policy_params_fn at every epoch, ES's loop
+  (es.py) to its caller at brax's evaluation steps; SAC only to its evaluator
+  (brax.training.acting.Evaluator.run_evaluation), just before each progress_fn(step, metrics)
+  call, so `_capturing_evaluations` wraps that method for the
   trainer's call to keep the parameters it was given (the trainers themselves are unchanged);
   the same wrapper hands brax's evaluator one array type, so it compiles its unroll once, not
   three times (`_plain`). The points are only collected during training; eval/baselines.py
@@ -393,11 +395,10 @@ def _train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | No
                                      grad_updates_per_step=s.grad_updates_per_step, min_replay_size=s.min_replay_size,
                                      max_replay_size=s.max_replay_size, learning_rate=s.learning_rate,
                                      discounting=s.discounting, network_factory=sac_networks(cfg))
-        else:
-            from brax.training.agents.es import train as es
-            e = cfg.es
-            _, params, _ = es.train(**common, population_size=e.population_size, perturbation_std=e.perturbation_std,
-                                    learning_rate=e.learning_rate, network_factory=es_networks(cfg))
+        else:   # brax's ES epoch with its state outside the call: checkpointed, resumable (es.py)
+            from training.baselines import es
+            params = es.train(cfg, sched.num_timesteps, sched.num_evals, cfg.run.run_dir, es_state_json(cfg), point,
+                              progress, timing)
     final = policy_params(cfg, params[0], params[1])
     ran = steps_seen[-1] if steps_seen else None
     if ran != sched.num_timesteps and not cfg.reward.end_at_landing:
@@ -406,6 +407,15 @@ def _train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | No
                            f"{sched.num_timesteps} (has brax's arithmetic changed? see brax_env_steps)")
     timing["train_s"] = round(time.perf_counter() - t0, 3)
     return final
+
+
+def es_state_json(cfg: BaselineConfig) -> dict:
+    """What an ES state checkpoint must agree with to be resumed: the method's settings, the
+    seed, the world, the reward, the policy size and the budget."""
+    run = to_json(cfg.run)
+    return {"method": cfg.method, "es": dataclasses.asdict(cfg.es), "reward": dataclasses.asdict(cfg.reward),
+            "throw_pool": cfg.throw_pool, "num_evals": cfg.num_evals,
+            **{k: run[k] for k in ("seed", "world", "policy", "total_trajectories")}}
 
 
 def policy_params(cfg: BaselineConfig, normalizer, brax_policy) -> PolicyParams:

@@ -111,7 +111,12 @@ class ESConfig:
     learning_rate: float = 0.01
     init_noise_std: float = 0.05
     """Std of the actions ES samples in its rollouts (brax ES acts stochastically); also perturbed."""
+    checkpoint_every: int = 1
+    """ES epochs between checkpoints of the whole state (training/baselines/es.py); curve points
+    are always saved."""
 
     def __post_init__(self):
-        if not isinstance(self.population_size, int) or self.population_size < 1:
-            raise ValueError(f"es.population_size={self.population_size!r}; expected an integer >= 1")
+        for name in ("population_size", "checkpoint_every"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise ValueError(f"es.{name}={v!r}; expected an integer >= 1")

@@ -1,0 +1,224 @@
+"""OpenAI-ES as brax 0.14.2's es.train runs it, with its state outside the call, so that an ES
+cell saves its whole state after every epoch and a stopped cell resumes where it stopped.
+
+brax's es.train keeps its training state (policy, Adam moments, observation statistics, RNG)
+inside one Python call and offers no restore; an ES cell at Table I's 120k trajectories or an
+extended ES curve can outlast a device call. This module runs brax's epoch unchanged in
+substance: the same network (agents.es_networks), fitness shaping ORIGINAL, antithetic
+perturbations of every parameter, brax's running observation statistics, optax Adam, and the
+same splits of the same key, on one device (brax's shard_map over one device is the identity).
+tests/test_baselines.py compares it with es.train itself.
+
+What brax's loop also does and this one does not: its evaluator's episode-reward rollout at
+each curve point (the strict-metric curve of eval/baselines.py replaces it, as for PPO).
+
+The state is checkpointed with Orbax (training/checkpoint.py: checksums, a full disk as one
+line) under RUN/es_state/, every `ESConfig.checkpoint_every` epochs and at every curve point,
+with the curve's policies so far: a resumed cell's curve is the uninterrupted cell's curve.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+import time
+
+import flax
+import jax
+import jax.numpy as jnp
+import optax
+
+from training import checkpoint
+
+STATE_DIR = "es_state"
+
+
+@flax.struct.dataclass
+class ESState:
+    """brax es.train's TrainingState and the loop's key: everything the next epoch needs."""
+    normalizer_params: object   # brax running_statistics.RunningStatisticsState
+    optimizer_state: object     # optax Adam state of policy_params
+    policy_params: object       # the policy network's params (the distribution's mean and std)
+    num_env_steps: jax.Array    # [] int32 environment steps run (brax keeps a UInt64; 120k x 160 fits int32)
+    key: jax.Array              # [2] uint32 the loop's key, as brax splits it: key, epoch_key = split(key)
+
+
+@dataclasses.dataclass(frozen=True)
+class Parts:
+    """What one ES configuration compiles: the wrapped environment, the network, the optimizer
+    and the jitted epoch (ESState -> (ESState, metrics))."""
+    env: object
+    network: object
+    optimizer: object
+    epoch: object
+
+
+def parts(cfg) -> Parts:
+    """brax es.train's setup for cfg (agents.BaselineConfig with method 'es'), built once per
+    configuration in a process whatever its seed and run directory (the epoch compiles once)."""
+    return _parts(dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, seed=0, run_dir="")))
+
+
+def keys(seed: int) -> tuple[jax.Array, jax.Array]:
+    """(network key, the loop's first key) as es.train splits PRNGKey(seed) (raw uint32 [2])."""
+    key, network_key, _eval_key, _rng_key = jax.random.split(jax.random.PRNGKey(seed), 4)
+    return network_key, key
+
+
+@functools.lru_cache(maxsize=4)
+def _parts(cfg) -> Parts:
+    from brax.training.acme import running_statistics
+
+    from training.baselines import agents
+    from training.baselines.env import GoalEnv, wrap_fresh
+    e, h = cfg.es, cfg.run.world.horizon
+    num_envs = 2 * e.population_size
+    env = wrap_fresh(GoalEnv(cfg.run.world, cfg.reward), episode_length=h, action_repeat=1, pool=cfg.throw_pool)
+    network = agents.es_networks(cfg)(observation_size=env.observation_size, action_size=env.action_size,
+                                      preprocess_observations_fn=running_statistics.normalize)
+    optimizer = optax.adam(learning_rate=e.learning_rate)
+    policy = jax.vmap(network.policy_network.apply, in_axes=(None, 0, 0))
+
+    def run_step(carry, _):
+        env_state, params, key, total, active, norm = carry
+        key, key_sample = jax.random.split(key)
+        actions = network.parametric_action_distribution.sample(policy(norm, params, env_state.obs), key_sample)
+        nstate = env.step(env_state, actions)
+        total = total + nstate.reward * active
+        return (nstate, params, key, total, active * (1 - nstate.done), norm), (env_state.obs, active)
+
+    def run_episode(norm, params, key):
+        """[num_envs] returns, [h, num_envs, obs] observations, [h, num_envs] their weights."""
+        key_scan, key_reset = jax.random.split(key)
+        first = env.reset(jax.random.split(key_reset, num_envs))
+        carry = (first, params, key_scan, first.reward, jnp.ones_like(first.reward), norm)
+        (_, _, _, total, _, _), (obs, weights) = jax.lax.scan(run_step, carry, (), length=h)
+        return total, obs, weights
+
+    def delta(param, noise, weights):
+        weights = jnp.reshape(weights, [e.population_size] + [1] * (noise.ndim - 1))
+        return -(jnp.sum(noise * weights, axis=0) / e.population_size)   # l2coeff 0, as brax's default
+
+    @jax.jit
+    def epoch(state: ESState):
+        key, epoch_key = jax.random.split(state.key)
+        key_noise_eval = jax.random.split(epoch_key, 3)
+        key_noise, key_eval = key_noise_eval[1], key_noise_eval[2]
+        params = jax.tree.map(lambda x: jnp.repeat(x[None], e.population_size, axis=0), state.policy_params)
+        leaves, treedef = jax.tree.flatten(params)
+        keys = jax.random.split(key_noise, len(leaves))
+        noise = jax.tree.unflatten(treedef, [jax.random.normal(k, x.shape, x.dtype) for k, x in zip(keys, leaves)])
+        both = jax.tree.map(lambda p, n: jnp.concatenate([p + n * e.perturbation_std, p - n * e.perturbation_std]),
+                            params, noise)
+        scores, obs, weights = run_episode(state.normalizer_params, both, jax.random.split(key_eval, 1)[0])
+        obs, weights = obs.reshape((-1,) + obs.shape[2:]), weights.reshape((-1,) + weights.shape[2:])
+        norm = running_statistics.update(state.normalizer_params, obs, weights=weights)
+        plus, minus = jnp.split(scores.reshape(-1), 2)
+        step = jax.tree.map(functools.partial(delta, weights=plus - minus), state.policy_params, noise)
+        updates, opt = optimizer.update(step, state.optimizer_state)
+        policy_params = optax.apply_updates(state.policy_params, updates)
+        metrics = {"params_norm": optax.global_norm(policy_params), "eval_scores_mean": jnp.mean(scores),
+                   "eval_scores_std": jnp.std(scores)}
+        return ESState(norm, opt, policy_params, state.num_env_steps + jnp.sum(weights, dtype=jnp.int32),
+                       key), metrics
+
+    return Parts(env, network, optimizer, epoch)
+
+
+def initial_state(cfg) -> ESState:
+    """brax es.train's initial TrainingState (same network key), step 0."""
+    from brax.training.acme import running_statistics, specs
+    p = parts(cfg)
+    network_key, key = keys(cfg.run.seed)
+    norm = running_statistics.init_state(specs.Array((p.env.observation_size,), jnp.dtype("float32")))
+    params = p.network.policy_network.init(network_key)
+    return ESState(norm, p.optimizer.init(params), params, jnp.int32(0), key)
+
+
+def eval_steps(num_timesteps: int, num_evals: int) -> list[int]:
+    """The environment-step thresholds after which brax's loop evaluates (it also evaluates at 0
+    when num_evals > 1): next_eval_step and its successors, as es.train computes them."""
+    after = max(num_evals - 1, 1)
+    between = num_timesteps // after
+    return [num_timesteps - (after - 1 - i) * between for i in range(after)]
+
+
+def _tree(state: ESState, points: list) -> dict:
+    return {"state": state, "points": {str(i): {"steps": jnp.int32(s), "normalizer": n, "policy": p}
+                                       for i, (s, n, p) in enumerate(points)}}
+
+
+def save(directory: str, state: ESState, points: list, cfg_json: dict) -> None:
+    """ESState and the curve's (steps, normalizer, policy) so far as checkpoint `env steps`."""
+    checkpoint.save(directory, int(state.num_env_steps), _tree(state, points),
+                    {**cfg_json, "curve_points": len(points)}, keep=2)
+
+
+def resume(directory: str, cfg, cfg_json: dict) -> tuple[ESState, list] | None:
+    """(state, points) of the newest checkpoint whose files match their checksums, or None if
+    there is none (damaged ones are removed: the run redoes them). ValueError if it was saved
+    with another configuration than `cfg_json`."""
+    saved = checkpoint.steps(directory)
+    damaged = [s for s in saved if checkpoint.damage(directory, s)]
+    if damaged:
+        checkpoint.discard(directory, damaged)
+    good = [s for s in saved if s not in damaged]
+    if not good:
+        return None
+    saved_cfg = checkpoint.restore_config(directory, good[-1])
+    n = saved_cfg.pop("curve_points")
+    saved_cfg.pop("checkpoint_format", None)
+    if saved_cfg != cfg_json:
+        diff = sorted(k for k in set(saved_cfg) | set(cfg_json) if saved_cfg.get(k) != cfg_json.get(k))
+        raise ValueError(f"{directory} holds an ES state of another configuration (differs in {', '.join(diff)}); "
+                         f"run with the same settings to resume it, or another --out")
+    fresh = initial_state(cfg)
+    like = _tree(fresh, [(0, fresh.normalizer_params, fresh.policy_params)] * n)
+    tree, _ = checkpoint.restore(directory, like, good[-1])
+    points = [(int(tree["points"][str(i)]["steps"]), tree["points"][str(i)]["normalizer"],
+               tree["points"][str(i)]["policy"]) for i in range(n)]
+    return tree["state"], points
+
+
+def train(cfg, num_timesteps: int, num_evals: int, run_dir: str, cfg_json: dict, point, progress=None,
+          timing: dict | None = None):
+    """Run ES from RUN/es_state's newest checkpoint (or from the start) to `num_timesteps`
+    environment steps; point(steps, normalizer, policy) at each curve point (brax's: 0 when
+    num_evals > 1, then eval_steps), replayed from the checkpoint for the points before it.
+    Returns (normalizer, policy) at the end. progress(steps, metrics) after every epoch;
+    `timing['epochs']` gets brax's training/sps and training/walltime per epoch."""
+    timing = {} if timing is None else timing
+    directory = os.path.join(run_dir, STATE_DIR)
+    p = parts(cfg)
+    unit = 2 * cfg.es.population_size * cfg.run.world.horizon
+    found = resume(directory, cfg, cfg_json)
+    state, points = found if found else (initial_state(cfg), [])
+    for s, n, pol in points:
+        point(s, n, pol)
+    if not found and num_evals > 1:
+        points.append((0, state.normalizer_params, state.policy_params))
+        point(0, state.normalizer_params, state.policy_params)
+        save(directory, state, points, cfg_json)
+    thresholds = eval_steps(num_timesteps, num_evals)
+    evaluated = len(points) - (num_evals > 1)     # thresholds already passed (brax's next_eval_step)
+    walltime, epochs = 0.0, 0
+    while int(state.num_env_steps) < num_timesteps:
+        t = time.perf_counter()
+        state, metrics = p.epoch(state)
+        metrics = jax.device_get(metrics)
+        dt = time.perf_counter() - t
+        walltime += dt
+        epochs += 1
+        steps = int(state.num_env_steps)
+        timing.setdefault("epochs", []).append({"env_steps": steps, "sps": unit / dt, "walltime": walltime})
+        if progress is not None:
+            progress(steps, {"training/sps": unit / dt, "training/walltime": walltime,
+                             **{f"training/{k}": float(v) for k, v in metrics.items()}})
+        due = evaluated < len(thresholds) and steps >= thresholds[evaluated]
+        if due:
+            evaluated += 1
+            points.append((steps, state.normalizer_params, state.policy_params))
+            point(steps, state.normalizer_params, state.policy_params)
+        if due or epochs % cfg.es.checkpoint_every == 0 or steps >= num_timesteps:
+            save(directory, state, points, cfg_json)
+    return state.normalizer_params, state.policy_params
