@@ -359,19 +359,19 @@ def es_run(tmp_path, name: str, stop_after: int | None = None, monkeypatch=None)
     """ES at the tiny scale, 4 trajectories (2 epochs, points at 0, 320, 640 steps), in
     tmp_path/name; stop_after: a Ctrl-C right after the checkpoint of that step is written.
     Returns ((normalizer, policy), [point steps], timing)."""
-    from training.baselines import es
+    from training.baselines import es, resumable
     cfg = baselines.method_config("es", "tiny", 0, str(tmp_path / name), trajectories=4)
     s = agents.schedule(cfg)
     if stop_after is not None:
-        real = es.save
+        real = resumable.save
 
-        def save_then_stop(directory, state, points, cfg_json):
-            real(directory, state, points, cfg_json)
-            if int(state.num_env_steps) == stop_after:
+        def save_then_stop(directory, step, state, points, cfg_json):
+            real(directory, step, state, points, cfg_json)
+            if step == stop_after:
                 raise KeyboardInterrupt
-        monkeypatch.setattr(es, "save", save_then_stop)
+        monkeypatch.setattr(resumable, "save", save_then_stop)
     points, timing = [], {}
-    out = es.train(cfg, s.num_timesteps, s.num_evals, cfg.run.run_dir, agents.es_state_json(cfg),
+    out = es.train(cfg, s.num_timesteps, s.num_evals, cfg.run.run_dir, agents.state_json(cfg),
                    lambda step, n, p: points.append(step), timing=timing)
     return out, points, timing
 
@@ -402,7 +402,9 @@ def test_a_stopped_es_run_resumes_to_the_uninterrupted_result(tmp_path, monkeypa
     """Stopped right after its first epoch's checkpoint, the same call resumes from it (one epoch
     left to run, the earlier curve points given back) and ends bit-for-bit where the
     uninterrupted run ends; a checkpoint of other settings is refused, naming what differs."""
-    from training.baselines import es
+    import functools
+
+    from training.baselines import es, resumable
     whole, whole_points, _ = es_run(tmp_path, "whole")
     with pytest.raises(KeyboardInterrupt):
         es_run(tmp_path, "cut", stop_after=2 * WORLD.horizon, monkeypatch=monkeypatch)
@@ -413,5 +415,7 @@ def test_a_stopped_es_run_resumes_to_the_uninterrupted_result(tmp_path, monkeypa
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     cfg = baselines.method_config("es", "tiny", 0, str(tmp_path / "cut"), trajectories=4)
     other = dataclasses.replace(cfg, es=dataclasses.replace(cfg.es, learning_rate=0.5))
+    like = jax.eval_shape(functools.partial(es.initial_state, other))
     with pytest.raises(ValueError, match="another configuration .*differs in es"):
-        es.resume(str(tmp_path / "cut" / es.STATE_DIR), other, agents.es_state_json(other))
+        resumable.resume(resumable.state_dir(str(tmp_path / "cut"), "es"), like,
+                         (like.normalizer_params, like.policy_params), agents.state_json(other))

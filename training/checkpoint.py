@@ -90,8 +90,10 @@ def _is_key(x) -> bool:
 
 
 def _savable(tree):
-    """Typed PRNG keys -> their uint32 data; every leaf -> a jax array."""
-    return jax.tree.map(lambda x: jax.random.key_data(x) if _is_key(x) else jnp.asarray(x), tree)
+    """Typed PRNG keys -> their uint32 data; every leaf -> a jax array (jax.ShapeDtypeStructs,
+    a structure to restore into, stay)."""
+    return jax.tree.map(lambda x: x if isinstance(x, jax.ShapeDtypeStruct) else
+                        jax.random.key_data(x) if _is_key(x) else jnp.asarray(x), tree)
 
 
 def _manager(directory: str, keep: int | None = None, read_only: bool = False) -> ocp.CheckpointManager:
@@ -233,9 +235,11 @@ def restore_config(directory: str, step: int | None = None) -> dict:
 
 def restore(directory: str, like, step: int | None = None):
     """(tree, config) of `step` (default: the newest). `like` gives the structure, shapes and
-    dtypes (its values are unused); leaves come back as jax arrays, typed keys as typed keys."""
+    dtypes (its values are unused; jax.eval_shape's ShapeDtypeStructs will do, for trees without
+    typed keys); leaves come back as jax arrays, typed keys as typed keys."""
     step = _existing_step(directory, step)
-    abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _savable(like))
+    abstract = jax.tree.map(lambda x: x if isinstance(x, jax.ShapeDtypeStruct) else ocp.utils.to_shape_dtype_struct(x),
+                            _savable(like))
     with _manager(directory, read_only=True) as mngr:
         out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
                                                          config=ocp.args.JsonRestore()))

@@ -397,7 +397,7 @@ def _train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | No
                                      discounting=s.discounting, network_factory=sac_networks(cfg))
         else:   # brax's ES epoch with its state outside the call: checkpointed, resumable (es.py)
             from training.baselines import es
-            params = es.train(cfg, sched.num_timesteps, sched.num_evals, cfg.run.run_dir, es_state_json(cfg), point,
+            params = es.train(cfg, sched.num_timesteps, sched.num_evals, cfg.run.run_dir, state_json(cfg), point,
                               progress, timing)
     final = policy_params(cfg, params[0], params[1])
     ran = steps_seen[-1] if steps_seen else None
@@ -409,11 +409,11 @@ def _train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | No
     return final
 
 
-def es_state_json(cfg: BaselineConfig) -> dict:
-    """What an ES state checkpoint must agree with to be resumed: the method's settings, the
-    seed, the world, the reward, the policy size and the budget."""
+def state_json(cfg: BaselineConfig) -> dict:
+    """What a state checkpoint of an RL cell must agree with to be resumed: the method's
+    settings, the seed, the world, the reward, the policy size and the budget."""
     run = to_json(cfg.run)
-    return {"method": cfg.method, "es": dataclasses.asdict(cfg.es), "reward": dataclasses.asdict(cfg.reward),
+    return {"method": cfg.method, cfg.method: dataclasses.asdict(getattr(cfg, cfg.method)), "reward": dataclasses.asdict(cfg.reward),
             "throw_pool": cfg.throw_pool, "num_evals": cfg.num_evals,
             **{k: run[k] for k in ("seed", "world", "policy", "total_trajectories")}}
 

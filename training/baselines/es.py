@@ -12,25 +12,21 @@ tests/test_baselines.py compares it with es.train itself.
 What brax's loop also does and this one does not: its evaluator's episode-reward rollout at
 each curve point (the strict-metric curve of eval/baselines.py replaces it, as for PPO).
 
-The state is checkpointed with Orbax (training/checkpoint.py: checksums, a full disk as one
-line) under RUN/es_state/, every `ESConfig.checkpoint_every` epochs and at every curve point,
-with the curve's policies so far: a resumed cell's curve is the uninterrupted cell's curve.
+The state is checkpointed under RUN/es_state/ (resumable.py) every `ESConfig.checkpoint_every`
+epochs and at every curve point, with the curve's policies so far: a resumed cell's curve is the
+uninterrupted cell's curve.
 """
 from __future__ import annotations
 
 import dataclasses
 import functools
-import os
-import time
 
 import flax
 import jax
 import jax.numpy as jnp
 import optax
 
-from training import checkpoint
-
-STATE_DIR = "es_state"
+from training.baselines import resumable
 
 
 @flax.struct.dataclass
@@ -143,82 +139,15 @@ def eval_steps(num_timesteps: int, num_evals: int) -> list[int]:
     return [num_timesteps - (after - 1 - i) * between for i in range(after)]
 
 
-def _tree(state: ESState, points: list) -> dict:
-    return {"state": state, "points": {str(i): {"steps": jnp.int32(s), "normalizer": n, "policy": p}
-                                       for i, (s, n, p) in enumerate(points)}}
-
-
-def save(directory: str, state: ESState, points: list, cfg_json: dict) -> None:
-    """ESState and the curve's (steps, normalizer, policy) so far as checkpoint `env steps`."""
-    checkpoint.save(directory, int(state.num_env_steps), _tree(state, points),
-                    {**cfg_json, "curve_points": len(points)}, keep=2)
-
-
-def resume(directory: str, cfg, cfg_json: dict) -> tuple[ESState, list] | None:
-    """(state, points) of the newest checkpoint whose files match their checksums, or None if
-    there is none (damaged ones are removed: the run redoes them). ValueError if it was saved
-    with another configuration than `cfg_json`."""
-    saved = checkpoint.steps(directory)
-    damaged = [s for s in saved if checkpoint.damage(directory, s)]
-    if damaged:
-        checkpoint.discard(directory, damaged)
-    good = [s for s in saved if s not in damaged]
-    if not good:
-        return None
-    saved_cfg = checkpoint.restore_config(directory, good[-1])
-    n = saved_cfg.pop("curve_points")
-    saved_cfg.pop("checkpoint_format", None)
-    if saved_cfg != cfg_json:
-        diff = sorted(k for k in set(saved_cfg) | set(cfg_json) if saved_cfg.get(k) != cfg_json.get(k))
-        raise ValueError(f"{directory} holds an ES state of another configuration (differs in {', '.join(diff)}); "
-                         f"run with the same settings to resume it, or another --out")
-    fresh = initial_state(cfg)
-    like = _tree(fresh, [(0, fresh.normalizer_params, fresh.policy_params)] * n)
-    tree, _ = checkpoint.restore(directory, like, good[-1])
-    points = [(int(tree["points"][str(i)]["steps"]), tree["points"][str(i)]["normalizer"],
-               tree["points"][str(i)]["policy"]) for i in range(n)]
-    return tree["state"], points
-
-
 def train(cfg, num_timesteps: int, num_evals: int, run_dir: str, cfg_json: dict, point, progress=None,
           timing: dict | None = None):
     """Run ES from RUN/es_state's newest checkpoint (or from the start) to `num_timesteps`
-    environment steps; point(steps, normalizer, policy) at each curve point (brax's: 0 when
-    num_evals > 1, then eval_steps), replayed from the checkpoint for the points before it.
-    Returns (normalizer, policy) at the end. progress(steps, metrics) after every epoch;
-    `timing['epochs']` gets brax's training/sps and training/walltime per epoch."""
-    timing = {} if timing is None else timing
-    directory = os.path.join(run_dir, STATE_DIR)
-    p = parts(cfg)
-    unit = 2 * cfg.es.population_size * cfg.run.world.horizon
-    found = resume(directory, cfg, cfg_json)
-    state, points = found if found else (initial_state(cfg), [])
-    for s, n, pol in points:
-        point(s, n, pol)
-    if not found and num_evals > 1:
-        points.append((0, state.normalizer_params, state.policy_params))
-        point(0, state.normalizer_params, state.policy_params)
-        save(directory, state, points, cfg_json)
-    thresholds = eval_steps(num_timesteps, num_evals)
-    evaluated = len(points) - (num_evals > 1)     # thresholds already passed (brax's next_eval_step)
-    walltime, epochs = 0.0, 0
-    while int(state.num_env_steps) < num_timesteps:
-        t = time.perf_counter()
-        state, metrics = p.epoch(state)
-        metrics = jax.device_get(metrics)
-        dt = time.perf_counter() - t
-        walltime += dt
-        epochs += 1
-        steps = int(state.num_env_steps)
-        timing.setdefault("epochs", []).append({"env_steps": steps, "sps": unit / dt, "walltime": walltime})
-        if progress is not None:
-            progress(steps, {"training/sps": unit / dt, "training/walltime": walltime,
-                             **{f"training/{k}": float(v) for k, v in metrics.items()}})
-        due = evaluated < len(thresholds) and steps >= thresholds[evaluated]
-        if due:
-            evaluated += 1
-            points.append((steps, state.normalizer_params, state.policy_params))
-            point(steps, state.normalizer_params, state.policy_params)
-        if due or epochs % cfg.es.checkpoint_every == 0 or steps >= num_timesteps:
-            save(directory, state, points, cfg_json)
+    environment steps (resumable.run); point(steps, normalizer, policy) at brax's curve points
+    (0 when num_evals > 1, then eval_steps). Returns (normalizer, policy) at the end."""
+    loop = resumable.Loop(epoch=parts(cfg).epoch, steps=lambda s: int(s.num_env_steps),
+                          acting=lambda s: (s.normalizer_params, s.policy_params),
+                          unit=2 * cfg.es.population_size * cfg.run.world.horizon)
+    state = resumable.run(loop, resumable.state_dir(run_dir, "es"), cfg_json, lambda: initial_state(cfg),
+                          num_timesteps, eval_steps(num_timesteps, num_evals), num_evals > 1, point, progress,
+                          timing, cfg.es.checkpoint_every)
     return state.normalizer_params, state.policy_params
