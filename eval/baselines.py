@@ -13,11 +13,11 @@ Methods (the table's variants):
                    lfp-equal-data)
     goalseye       this project's trainer as configured (the reference row)
 
-All at the same trajectory budget. An ES cell saves its whole state after every epoch
-(training/baselines/es.py) and the same command resumes it; a PPO or SAC cell cut short by a
-signal is redone (brax's trainers keep their state inside one call); a finished cell is skipped.
+All at the same trajectory budget. An ES or PPO cell saves its whole state after every epoch
+(training/baselines/resumable.py) and the same command resumes it; a SAC cell cut short by a
+signal is redone (brax's sac.train keeps its state inside one call); a finished cell is skipped.
 
-    OUT/runs/<method>-seed<s>/    the cell's run (RL: checkpoints/, ES also es_state/)
+    OUT/runs/<method>-seed<s>/    the cell's run (RL: checkpoints/; ES, PPO also <method>_state/)
     OUT/results/<method>-seed<s>.json, OUT/table.md, curves.png, landings/, summary.json
 """
 from __future__ import annotations

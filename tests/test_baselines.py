@@ -302,10 +302,9 @@ def test_trains_evaluates_and_exports(method, tmp_path, monkeypatch):
     n = 4 if method == "es" else 2    # ES: 2 episodes per epoch, 2 epochs
     summary = baselines.run([method], "tiny", 1, out, trajectories=n, progress=False)
     # SAC: brax's evaluator ran at each of the 3 curve points on one compiled unroll
-    # (agents._plain); PPO: brax's evaluator is off; ES runs none (the strict-metric curve
-    # replaces it)
-    assert len(evaluators) == (0 if method == "es" else 1)
-    assert [e._generate_eval_unroll._cache_size() for e in evaluators] == {"ppo": [0], "sac": [1], "es": []}[method]
+    # (agents._plain); PPO and ES (their loops outside brax's call) run none: the strict-metric
+    # curve replaces it
+    assert [e._generate_eval_unroll._cache_size() for e in evaluators] == ([1] if method == "sac" else [])
     result = json.load(open(os.path.join(out, "results", f"{method}-seed0.json")))
     assert result["final"]["goals"] == tiny().eval_goals and 0 <= result["final"]["hit_rate"] <= 1
     assert result["config"]["method"] == method and result["config"]["run"]["total_trajectories"] == n
@@ -354,13 +353,17 @@ def test_first_seed_plans_the_later_seeds_of_one_table(tmp_path):
     assert [(c.name, c.seed, c.config.seed) for c in cells] == [("gcsl-seed3", 3, 3), ("gcsl-seed4", 4, 4)]
 
 
-# -- ES with its state outside brax's call (training/baselines/es.py) ---------------------------
-def es_run(tmp_path, name: str, stop_after: int | None = None, monkeypatch=None):
-    """ES at the tiny scale, 4 trajectories (2 epochs, points at 0, 320, 640 steps), in
-    tmp_path/name; stop_after: a Ctrl-C right after the checkpoint of that step is written.
-    Returns ((normalizer, policy), [point steps], timing)."""
-    from training.baselines import es, resumable
-    cfg = baselines.method_config("es", "tiny", 0, str(tmp_path / name), trajectories=4)
+# -- ES and PPO with their state outside brax's call (es.py, ppo.py, resumable.py) ---------------
+RESUMABLE = ("ppo", "es")
+BUDGET = {"ppo": 2, "es": 4}   # trajectories: 2 epochs each (3 curve points)
+
+
+def rl_run(tmp_path, method: str, name: str, stop_after: int | None = None, monkeypatch=None):
+    """`method` at the tiny scale on BUDGET[method] trajectories in tmp_path/name; stop_after: a
+    Ctrl-C right after the checkpoint of that step is written. Returns ((normalizer, policy),
+    [point steps], timing)."""
+    from training.baselines import es, ppo, resumable
+    cfg = baselines.method_config(method, "tiny", 0, str(tmp_path / name), trajectories=BUDGET[method])
     s = agents.schedule(cfg)
     if stop_after is not None:
         real = resumable.save
@@ -371,51 +374,68 @@ def es_run(tmp_path, name: str, stop_after: int | None = None, monkeypatch=None)
                 raise KeyboardInterrupt
         monkeypatch.setattr(resumable, "save", save_then_stop)
     points, timing = [], {}
-    out = es.train(cfg, s.num_timesteps, s.num_evals, cfg.run.run_dir, agents.state_json(cfg),
-                   lambda step, n, p: points.append(step), timing=timing)
+    out = {"es": es, "ppo": ppo}[method].train(cfg, s.num_timesteps, s.num_evals, cfg.run.run_dir,
+                                              agents.state_json(cfg), lambda step, n, p: points.append(step),
+                                              timing=timing)
     return out, points, timing
 
 
-def test_es_is_brax_es_train_bit_for_bit(tmp_path):
-    """The loop with its state outside the call computes what brax 0.14.2's es.train computes
-    (same seed, network, environment and budget): the same final statistics and policy."""
+def brax_reference(cfg):
+    """(normalizer, policy) from brax 0.14.2's own ppo.train / es.train with the settings
+    agents._train used to pass it."""
     import functools
 
     from brax.training.agents.es import train as brax_es
+    from brax.training.agents.ppo import train as brax_ppo
 
     from training.baselines.env import wrap_fresh
-    ours, points, _ = es_run(tmp_path, "ours")
-    cfg = baselines.method_config("es", "tiny", 0, str(tmp_path / "brax"), trajectories=4)
     s = agents.schedule(cfg)
-    _, theirs, _ = brax_es.train(environment=GoalEnv(cfg.run.world, cfg.reward), num_timesteps=s.num_timesteps,
-                                 episode_length=WORLD.horizon, wrap_env_fn=functools.partial(wrap_fresh, pool=cfg.throw_pool),
-                                 normalize_observations=True, seed=0, num_evals=s.num_evals,
-                                 num_eval_envs=cfg.num_eval_envs, deterministic_eval=True,
-                                 population_size=cfg.es.population_size, perturbation_std=cfg.es.perturbation_std,
-                                 learning_rate=cfg.es.learning_rate, network_factory=agents.es_networks(cfg))
-    assert points == [0, 2 * WORLD.horizon, 4 * WORLD.horizon]
+    common = dict(environment=GoalEnv(cfg.run.world, cfg.reward), num_timesteps=s.num_timesteps,
+                  episode_length=WORLD.horizon, wrap_env_fn=functools.partial(wrap_fresh, pool=cfg.throw_pool),
+                  normalize_observations=True, seed=cfg.run.seed, num_evals=s.num_evals,
+                  num_eval_envs=cfg.num_eval_envs, deterministic_eval=True)
+    if cfg.method == "es":
+        e = cfg.es
+        return brax_es.train(**common, population_size=e.population_size, perturbation_std=e.perturbation_std,
+                             learning_rate=e.learning_rate, network_factory=agents.es_networks(cfg))[1][:2]
+    p = cfg.ppo
+    with agents.brax_compat():
+        return brax_ppo.train(**common, num_envs=p.num_envs, unroll_length=p.unroll_length, batch_size=p.batch_size,
+                              num_minibatches=p.num_minibatches, num_updates_per_batch=p.num_updates_per_batch,
+                              learning_rate=p.learning_rate, entropy_cost=p.entropy_cost, discounting=p.discounting,
+                              clipping_epsilon=p.clipping_epsilon, network_factory=agents.ppo_networks(cfg),
+                              run_evals=False)[1][:2]
+
+
+@pytest.mark.parametrize("method", RESUMABLE)
+def test_the_resumable_loop_is_brax_train_bit_for_bit(method, tmp_path):
+    """The loop with its state outside the call computes what brax 0.14.2's ppo.train / es.train
+    computes (same seed, networks, environment and budget): the same final statistics and
+    policy, and curve points where brax hands its policy out."""
+    ours, points, _ = rl_run(tmp_path, method, "ours")
+    theirs = brax_reference(baselines.method_config(method, "tiny", 0, str(tmp_path / "brax"),
+                                                    trajectories=BUDGET[method]))
+    unit = BUDGET[method] // 2 * WORLD.horizon
+    assert points == [0, unit, 2 * unit]
     for a, b in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
-def test_a_stopped_es_run_resumes_to_the_uninterrupted_result(tmp_path, monkeypatch):
+@pytest.mark.parametrize("method", RESUMABLE)
+def test_a_stopped_run_resumes_to_the_uninterrupted_result(method, tmp_path, monkeypatch):
     """Stopped right after its first epoch's checkpoint, the same call resumes from it (one epoch
     left to run, the earlier curve points given back) and ends bit-for-bit where the
     uninterrupted run ends; a checkpoint of other settings is refused, naming what differs."""
-    import functools
-
-    from training.baselines import es, resumable
-    whole, whole_points, _ = es_run(tmp_path, "whole")
+    from training.baselines import resumable
+    whole, whole_points, _ = rl_run(tmp_path, method, "whole")
     with pytest.raises(KeyboardInterrupt):
-        es_run(tmp_path, "cut", stop_after=2 * WORLD.horizon, monkeypatch=monkeypatch)
+        rl_run(tmp_path, method, "cut", stop_after=whole_points[1], monkeypatch=monkeypatch)
     monkeypatch.undo()
-    resumed, points, timing = es_run(tmp_path, "cut")
+    resumed, points, timing = rl_run(tmp_path, method, "cut")
     assert points == whole_points and len(timing["epochs"]) == 1
     for a, b in zip(jax.tree.leaves(resumed), jax.tree.leaves(whole), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    cfg = baselines.method_config("es", "tiny", 0, str(tmp_path / "cut"), trajectories=4)
-    other = dataclasses.replace(cfg, es=dataclasses.replace(cfg.es, learning_rate=0.5))
-    like = jax.eval_shape(functools.partial(es.initial_state, other))
-    with pytest.raises(ValueError, match="another configuration .*differs in es"):
-        resumable.resume(resumable.state_dir(str(tmp_path / "cut"), "es"), like,
-                         (like.normalizer_params, like.policy_params), agents.state_json(other))
+    cfg = baselines.method_config(method, "tiny", 0, str(tmp_path / "cut"), trajectories=BUDGET[method])
+    other = dataclasses.replace(cfg, **{method: dataclasses.replace(getattr(cfg, method), learning_rate=0.5)})
+    with pytest.raises(ValueError, match=f"another configuration .*differs in {method}"):
+        resumable.resume(resumable.state_dir(str(tmp_path / "cut"), method), {}, ({}, {}), agents.state_json(other))

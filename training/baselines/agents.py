@@ -1,7 +1,7 @@
-"""PPO, SAC and ES from brax's own trainers on GoalEnv, configured, not rewritten (ES: brax's epoch
-with its state outside the call, so it checkpoints and resumes: training/baselines/es.py); their
-policy saved as a GoalsEye checkpoint (training/checkpoint.py) so `ttmjx eval` and `ttmjx export`
-read it unchanged.
+"""PPO, SAC and ES from brax's own trainers on GoalEnv, configured, not rewritten (PPO and ES:
+brax's epochs with their state outside the call, so they checkpoint and resume: ppo.py, es.py);
+their policy saved as a GoalsEye checkpoint (training/checkpoint.py) so `ttmjx eval` and `ttmjx
+export` read it unchanged.
 
 Configuration choices (the rest are brax's defaults):
 
@@ -22,10 +22,10 @@ Configuration choices (the rest are brax's defaults):
   trajectories in epochs of equal length, and a budget that no whole number of the method's
   batches fills is refused with the nearest budgets that are. The GPU settings make Table I's
   120,000 exact for every method: PPO's batch is 4,000 episodes (4,000 environments x 160 steps), ES's 2 x 1,000;
-* PPO: brax's own evaluator is off (`run_evals=False`): the strict-metric curve below replaces it,
-  and it cost a sequential episode per point;
-* learning-curve points: PPO hands its policy to policy_params_fn at every epoch, ES's loop
-  (es.py) to its caller at brax's evaluation steps; SAC only to its evaluator
+* PPO and ES run no brax evaluator: the strict-metric curve below replaces it, and it cost a
+  sequential episode per point;
+* learning-curve points: PPO's loop (ppo.py) hands its policy out at every epoch, as brax's
+  policy_params_fn, ES's loop (es.py) at brax's evaluation steps; SAC only to its evaluator
   (brax.training.acting.Evaluator.run_evaluation), just before each progress_fn(step, metrics)
   call, so `_capturing_evaluations` wraps that method for the
   trainer's call to keep the parameters it was given (the trainers themselves are unchanged);
@@ -379,15 +379,10 @@ def _train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | No
         common = dict(environment=env, num_timesteps=sched.num_timesteps, episode_length=h, wrap_env_fn=wrap,
                       normalize_observations=True, seed=cfg.run.seed, num_evals=sched.num_evals,
                       num_eval_envs=cfg.num_eval_envs, deterministic_eval=True, progress_fn=progress_fn)
-        if cfg.method == "ppo":
-            from brax.training.agents.ppo import train as ppo
-            p = cfg.ppo
-            _, params, _ = ppo.train(**common, num_envs=p.num_envs, unroll_length=p.unroll_length,
-                                     batch_size=p.batch_size, num_minibatches=p.num_minibatches,
-                                     num_updates_per_batch=p.num_updates_per_batch, learning_rate=p.learning_rate,
-                                     entropy_cost=p.entropy_cost, discounting=p.discounting,
-                                     clipping_epsilon=p.clipping_epsilon, network_factory=ppo_networks(cfg),
-                                     run_evals=False, policy_params_fn=lambda step, _, params: point(step, params[0], params[1]))
+        if cfg.method == "ppo":   # brax's PPO epoch with its state outside the call (ppo.py)
+            from training.baselines import ppo
+            params = ppo.train(cfg, sched.num_timesteps, sched.num_evals, cfg.run.run_dir, state_json(cfg), point,
+                               progress, timing)
         elif cfg.method == "sac":
             from brax.training.agents.sac import train as sac
             s = cfg.sac
@@ -412,8 +407,10 @@ def _train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | No
 def state_json(cfg: BaselineConfig) -> dict:
     """What a state checkpoint of an RL cell must agree with to be resumed: the method's
     settings, the seed, the world, the reward, the policy size and the budget."""
+    import json
     run = to_json(cfg.run)
-    return {"method": cfg.method, cfg.method: dataclasses.asdict(getattr(cfg, cfg.method)), "reward": dataclasses.asdict(cfg.reward),
+    settings = json.loads(json.dumps(dataclasses.asdict(getattr(cfg, cfg.method))))   # as saved: lists, not tuples
+    return {"method": cfg.method, cfg.method: settings, "reward": dataclasses.asdict(cfg.reward),
             "throw_pool": cfg.throw_pool, "num_evals": cfg.num_evals,
             **{k: run[k] for k in ("seed", "world", "policy", "total_trajectories")}}
 
