@@ -1,7 +1,8 @@
-"""PPO, SAC and ES from brax's own trainers on GoalEnv, configured, not rewritten (PPO and ES:
-brax's epochs with their state outside the call, so they checkpoint and resume: ppo.py, es.py);
-their policy saved as a GoalsEye checkpoint (training/checkpoint.py) so `ttmjx eval` and `ttmjx
-export` read it unchanged.
+"""PPO, SAC and ES on GoalEnv as brax 0.14.2's trainers run them, configured, not rewritten in
+substance: ppo.py, sac.py and es.py run brax's own epochs, from brax's pieces, with the state
+outside the call, so that a cell checkpoints every epoch and resumes (resumable.py); tests
+compare each with brax's ppo.train / sac.train / es.train. Their policy is saved as a GoalsEye
+checkpoint (training/checkpoint.py) so `ttmjx eval` and `ttmjx export` read it unchanged.
 
 Configuration choices (the rest are brax's defaults):
 
@@ -22,19 +23,15 @@ Configuration choices (the rest are brax's defaults):
   trajectories in epochs of equal length, and a budget that no whole number of the method's
   batches fills is refused with the nearest budgets that are. The GPU settings make Table I's
   120,000 exact for every method: PPO's batch is 4,000 episodes (4,000 environments x 160 steps), ES's 2 x 1,000;
-* PPO and ES run no brax evaluator: the strict-metric curve below replaces it, and it cost a
-  sequential episode per point;
-* learning-curve points: PPO's loop (ppo.py) hands its policy out at every epoch, as brax's
-  policy_params_fn, ES's loop (es.py) at brax's evaluation steps; SAC only to its evaluator
-  (brax.training.acting.Evaluator.run_evaluation), just before each progress_fn(step, metrics)
-  call, so `_capturing_evaluations` wraps that method for the
-  trainer's call to keep the parameters it was given (the trainers themselves are unchanged);
-  the same wrapper hands brax's evaluator one array type, so it compiles its unroll once, not
-  three times (`_plain`). The points are only collected during training; eval/baselines.py
-  scores them all in one batched rollout at the end;
-* seeds: one cell after another in one process; brax builds its jitted functions anew per call,
-  so the later seeds reuse the first one's compiled programs through JAX's persistent
-  compilation cache (`ttmjx` enables it) instead of compiling again.
+* no brax evaluator: the strict-metric curve replaces its episode-reward rollout, which cost a
+  compiled MJX episode and a sequential episode per point;
+* learning-curve points where brax's trainers hand their policy out: PPO at 0 and after every
+  epoch (its policy_params_fn), SAC and ES at 0 and after each epoch that reaches an evaluation
+  step (their evaluator). The points are only collected during training (and saved with the
+  state); eval/baselines.py scores them all in one batched rollout at the end;
+* seeds: one cell after another in one process; each method's epoch is built once per
+  configuration whatever the seed (`parts`), so later seeds reuse the first one's compiled
+  epoch.
 
 The conversion (`policy_params`): brax's policy MLP hidden_i -> MLPNet dense_i, its mean head ->
 head; brax's observation normalization (x - m) / s per input value folded into the first layer
@@ -43,7 +40,6 @@ denormalized with act_mean = home, act_std = reach (GoalEnv's affine action map)
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 import math
@@ -59,7 +55,7 @@ from models.normalizer import Normalizer
 from models.policy import PolicyParams
 from training import checkpoint
 from training.baselines.config import ESConfig, PPOConfig, RewardConfig, SACConfig  # noqa: F401 (re-exported)
-from training.baselines.env import GoalEnv, reach, wrap_fresh
+from training.baselines.env import reach
 from training.runconfig import RunConfig, to_json
 
 METHODS = ("ppo", "sac", "es")
@@ -251,107 +247,21 @@ def es_networks(cfg: BaselineConfig):
 
 
 # -- training ----------------------------------------------------------------------------------
-PMAP_AXIS = "i"   # brax's _PMAP_AXIS_NAME in ppo/train.py and sac/train.py
-
-
-def _replicated(x, devices):
-    """What jax.device_put_replicated did: x with a leading axis over `devices`, one copy on each,
-    placed as JAX 0.10's pmap places its own outputs (NamedSharding over a mesh of brax's axis
-    name), so brax's pmapped training step sees one input placement and compiles once: stacked
-    on one device it compiled twice, for the first call and for every later one (measured: 2 x
-    ~24 s of the tiny PPO cell on a 2-core CPU). Strongly typed, as the step's outputs are: SAC's
-    weakly typed initial std_param retraced its training epoch (another ~21 s)."""
-    from jax.sharding import Mesh, NamedSharding, PartitionSpec
-    place = NamedSharding(Mesh(np.asarray(devices), (PMAP_AXIS,)), PartitionSpec(PMAP_AXIS))
-
-    def replicate(a):
-        a = jnp.asarray(a)
-        return jax.device_put(jnp.stack([a] * len(devices)).astype(a.dtype), place)   # astype: not weak
-    return jax.tree.map(replicate, x)
-
-
-def brax_compat():
-    """The one patch: brax 0.14.2's PPO and SAC call jax.device_put_replicated, which JAX 0.10
-    removed (it raises AttributeError). Installed for the trainer's call only, as what it did: a
-    copy per device along a new leading axis (brax pmaps over that axis)."""
-    @contextlib.contextmanager
-    def patched():
-        try:
-            jax.device_put_replicated
-            yield
-            return
-        except AttributeError:
-            pass
-        jax.device_put_replicated = _replicated
-        try:
-            yield
-        finally:
-            del jax.device_put_replicated
-    return patched()
-
-
-def _plain(tree):
-    """tree's arrays as strongly typed arrays on the default device, with no mesh in their type.
-
-    Under JAX 0.10's pmap, what brax unpmaps carries the pmap's mesh axis in its type, and its
-    initial parameters are weakly typed where trained ones are not: brax's Evaluator then
-    compiled its evaluation unroll (the environment's whole episode) three times per run, for
-    (initial state, initial params), (initial state, trained params) and (unrolled state,
-    trained params). Measured on the tiny PPO cell on a 2-core CPU: 3 compiles of ~18 s in a
-    ~170 s cell (`JAX_LOG_COMPILES=1 ttmjx baseline ppo --scale tiny --trajectories 2 --out DIR`
-    logs each compile; docs/RESULTS.md). The environment state too: with plain parameters alone
-    the unroll still compiled twice (tests/test_baselines.py counts one)."""
-    dev = jax.devices()[0]
-
-    def plain(x):   # through the host: the weights and the eval state, once per evaluation
-        if isinstance(x, jax.Array) and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
-            return x
-        if isinstance(x, (jax.Array, np.ndarray, np.generic, float, int)):   # ES: a Python float std_eps
-            return jax.device_put(np.asarray(x), dev)
-        return x
-    return jax.tree.map(plain, tree)
-
-
-@contextlib.contextmanager
-def _capturing_evaluations():
-    """Yields a list that receives the parameters brax's Evaluator.run_evaluation is called
-    with, wrapped for the trainer's call only. SAC and ES hand their policy to nothing else, and
-    call it just before each progress_fn(step, metrics): progress_fn then finds the policy of
-    that step at the list's end. The wrapper also hands the evaluator its parameters and its
-    environment state in one type (`_plain`), so its unroll compiles once."""
-    from brax.training import acting
-    seen, original = [], acting.Evaluator.run_evaluation
-
-    def run_evaluation(self, policy_params, *args, **kwargs):
-        policy_params = _plain(policy_params)
-        self._eval_state_to_donate = _plain(self._eval_state_to_donate)
-        seen.append(policy_params)
-        return original(self, policy_params, *args, **kwargs)
-    acting.Evaluator.run_evaluation = run_evaluation
-    try:
-        yield seen
-    finally:
-        acting.Evaluator.run_evaluation = original
-
-
 def train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | None = None):
-    """Run brax's trainer on schedule(cfg); returns the final policy as PolicyParams.
+    """Run the method's loop (ppo.py, sac.py, es.py: brax's epochs, the state checkpointed under
+    RUN/<method>_state/ and resumed from there) on schedule(cfg); returns the final policy as
+    PolicyParams.
 
-    on_policy(env_steps, PolicyParams) is called at every learning-curve point (brax's step 0
+    on_policy(env_steps, PolicyParams) is called at every learning-curve point (brax's: step 0
     and the end of each of its epochs; env_steps is brax's own count, the last one exactly
-    schedule(cfg).num_timesteps); progress(env_steps, metrics) gets brax's own metrics (its
-    evaluator's episode reward, or PPO's training metrics). `timing`, a dict, receives where the
-    time went: `points` [(env_steps, seconds since the call)] and `epochs`, brax's own
-    training/sps and training/walltime per epoch (its epoch time excludes evaluations; the
-    first epoch includes compiling the training step)."""
-    with brax_compat():
-        return _train(cfg, on_policy, progress, {} if timing is None else timing)
-
-
-def _train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | None = None):
+    schedule(cfg).num_timesteps; a resumed run replays the points before its checkpoint);
+    progress(env_steps, metrics) gets the epoch's training metrics. `timing`, a dict, receives
+    where the time went: `points` [(env_steps, seconds since the call)] and `epochs`, brax's
+    training/sps and training/walltime per epoch (the first epoch of a call includes compiling
+    it; SAC's first includes its replay prefill)."""
+    from training.baselines import es, ppo, sac
+    timing = {} if timing is None else timing
     t0 = time.perf_counter()
-    env = GoalEnv(cfg.run.world, cfg.reward)
-    h = cfg.run.world.horizon
     sched = schedule(cfg)
     steps_seen = []
     timing.update(points=[], epochs=[])
@@ -362,38 +272,9 @@ def _train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | No
         if on_policy is not None:
             on_policy(int(step), policy_params(cfg, normalizer, policy))
 
-    with contextlib.ExitStack() as stack:
-        evaluated = stack.enter_context(_capturing_evaluations())
-
-        def progress_fn(step, metrics):
-            scored = evaluated.pop() if evaluated else None
-            if scored is not None and cfg.method != "ppo":   # SAC, ES: the policy their evaluator just scored
-                point(step, *scored[:2])
-            if "training/sps" in metrics:
-                timing["epochs"].append({"env_steps": int(step), "sps": float(metrics["training/sps"]),
-                                         "walltime": float(metrics["training/walltime"])})
-            if progress is not None:
-                progress(step, metrics)
-
-        wrap = functools.partial(wrap_fresh, pool=cfg.throw_pool)
-        common = dict(environment=env, num_timesteps=sched.num_timesteps, episode_length=h, wrap_env_fn=wrap,
-                      normalize_observations=True, seed=cfg.run.seed, num_evals=sched.num_evals,
-                      num_eval_envs=cfg.num_eval_envs, deterministic_eval=True, progress_fn=progress_fn)
-        if cfg.method == "ppo":   # brax's PPO epoch with its state outside the call (ppo.py)
-            from training.baselines import ppo
-            params = ppo.train(cfg, sched.num_timesteps, sched.num_evals, cfg.run.run_dir, state_json(cfg), point,
-                               progress, timing)
-        elif cfg.method == "sac":
-            from brax.training.agents.sac import train as sac
-            s = cfg.sac
-            _, params, _ = sac.train(**common, num_envs=s.num_envs, batch_size=s.batch_size,
-                                     grad_updates_per_step=s.grad_updates_per_step, min_replay_size=s.min_replay_size,
-                                     max_replay_size=s.max_replay_size, learning_rate=s.learning_rate,
-                                     discounting=s.discounting, network_factory=sac_networks(cfg))
-        else:   # brax's ES epoch with its state outside the call: checkpointed, resumable (es.py)
-            from training.baselines import es
-            params = es.train(cfg, sched.num_timesteps, sched.num_evals, cfg.run.run_dir, state_json(cfg), point,
-                              progress, timing)
+    method = {"ppo": ppo, "sac": sac, "es": es}[cfg.method]
+    params = method.train(cfg, sched.num_timesteps, sched.num_evals, cfg.run.run_dir, state_json(cfg), point,
+                          progress, timing)
     final = policy_params(cfg, params[0], params[1])
     ran = steps_seen[-1] if steps_seen else None
     if ran != sched.num_timesteps and not cfg.reward.end_at_landing:
