@@ -114,51 +114,62 @@ def plan(methods: list[str], scale: str, seeds: int, out: str, trajectories: int
 
 # -- the RL trainer (the cells seam) ------------------------------------------------------------
 def rl_trainer(cfg: agents.BaselineConfig, progress: bool = True) -> cellrun.Outcome:
-    """brax's trainer for cfg.method, a strict-metric curve point wherever it hands its policy
-    out (at 0 and after each of its epochs; x: brax's environment steps / horizon, which need
-    not be whole inside SAC's run), the policy saved as a checkpoint of cfg.run whose counter
-    is the trajectories brax ran, then the cells' final evaluation of it.
+    """rl_seeds of one cell (brax's loop unbatched)."""
+    return rl_seeds([cfg], progress)[0]
 
-    The curve's policies are kept during training and scored together at the end, every point
-    on the same goals and throws (key run.seed + 1) in one batched rollout (`curve_metrics`):
-    one episode's latency instead of one per point. Where the time went is written to
-    RUN/timing.json (brax's epochs, the curve, the save, the final evaluation)."""
-    run = cfg.run
-    h = run.world.horizon
-    points, timing = [], {}
-    timing_path = os.path.join(run.run_dir, "timing.json")
+
+def rl_seeds(cfgs: list, progress: bool = True) -> list[cellrun.Outcome]:
+    """The method's loop for the seeds `cfgs` (one program: agents.train_seeds), a strict-metric
+    curve point wherever brax hands its policy out (at 0 and after each of its epochs; x:
+    brax's environment steps / horizon, which need not be whole inside SAC's run), each policy
+    saved as a checkpoint of its run whose counter is the trajectories brax ran, then the
+    cells' final evaluation of each.
+
+    The curve's policies are kept during training (and with the checkpointed state) and scored
+    together at the end, every point on the same goals and throws (key run.seed + 1) in one
+    batched rollout per seed (`curve_metrics`): one episode's latency instead of one per point.
+    Where the time went is written to RUN/timing.json (brax's epochs, the curve, the save, the
+    final evaluation)."""
+    cfg = cfgs[0]
+    h = cfg.run.world.horizon
+    points, timing = [[] for _ in cfgs], {}
     t0 = time.perf_counter()
 
-    def on_policy(steps: int, p):
-        """Keep the point; say at once how far brax got and when (a cell cut short by a call's
-        time limit still leaves its timing.json so far)."""
-        points.append((steps, p))
-        files.write_json(timing_path, timing)
-        if progress:
-            log(f"[baseline] {cfg.method} {steps // h:,} trajectories trained ({steps:,} environment steps) "
-                f"at {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    def on_policy(i: int, steps: int, p):
+        """Keep the point; say at once how far the loop got and when (a cell cut short by a
+        call's time limit still leaves its timing.json so far)."""
+        points[i].append((steps, p))
+        files.write_json(os.path.join(cfgs[i].run.run_dir, "timing.json"), timing)
+        if progress and i == 0:
+            log(f"[baseline] {cfg.method} {steps // h:,} trajectories trained ({steps:,} environment steps"
+                f"{f', {len(cfgs)} seeds' if len(cfgs) > 1 else ''}) at {time.perf_counter() - t0:.1f} s",
+                file=sys.stderr)
 
-    params = agents.train(cfg, on_policy, timing=timing)
-    t = time.perf_counter()
-    backend = Backend(run.world, resolve_backend(run.backend))
-    metrics = curve_metrics(cfg, [p for _, p in points], backend)
-    timing["curve_eval_s"] = round(time.perf_counter() - t, 3)
-    curve = []
-    for (steps, _), m in zip(points, metrics):
-        x = steps // h if steps % h == 0 else round(steps / h, 3)
-        curve.append({"trajectories": x, "env_steps": steps, "updates": 0, "cache_size": 0, **m})
-        if progress:
-            log(f"[baseline] {cfg.method} {x:,} trajectories: "
-                f"<=30cm {m['within_30cm']:.1%} hit {m['hit_rate']:.1%}", file=sys.stderr)
-    t = time.perf_counter()
-    agents.save_policy(cfg, params, run.total_trajectories)     # what brax ran: schedule() is exact
-    timing["save_s"] = round(time.perf_counter() - t, 3)
-    t = time.perf_counter()
-    final, landings = cellrun.final_evaluation(run.run_dir)
-    timing["final_eval_s"] = round(time.perf_counter() - t, 3)
-    timing["env_steps"] = agents.schedule(cfg).num_timesteps
-    files.write_json(timing_path, timing)
-    return cellrun.Outcome(True, 0, final, curve, landings)
+    finals = agents.train_seeds(cfgs, on_policy, timing=timing)
+    backend = Backend(cfg.run.world, resolve_backend(cfg.run.backend))
+    outcomes = []
+    for c, pts, params in zip(cfgs, points, finals):
+        run, t, own = c.run, time.perf_counter(), dict(timing)
+        metrics = curve_metrics(c, [p for _, p in pts], backend)
+        own["curve_eval_s"] = round(time.perf_counter() - t, 3)
+        curve = []
+        for (steps, _), m in zip(pts, metrics):
+            x = steps // h if steps % h == 0 else round(steps / h, 3)
+            curve.append({"trajectories": x, "env_steps": steps, "updates": 0, "cache_size": 0, **m})
+            if progress:
+                log(f"[baseline] {c.method} seed {run.seed} {x:,} trajectories: "
+                    f"<=30cm {m['within_30cm']:.1%} hit {m['hit_rate']:.1%}", file=sys.stderr)
+        t = time.perf_counter()
+        agents.save_policy(c, params, run.total_trajectories)     # what brax ran: schedule() is exact
+        own["save_s"] = round(time.perf_counter() - t, 3)
+        t = time.perf_counter()
+        final, landings = cellrun.final_evaluation(run.run_dir)
+        own["final_eval_s"] = round(time.perf_counter() - t, 3)
+        own["env_steps"] = agents.schedule(c).num_timesteps
+        own["seeds_in_program"] = len(cfgs)
+        files.write_json(os.path.join(run.run_dir, "timing.json"), own)
+        outcomes.append(cellrun.Outcome(True, 0, final, curve, landings))
+    return outcomes
 
 
 def curve_metrics(cfg: agents.BaselineConfig, policies: list, backend: Backend) -> list[dict]:
@@ -178,6 +189,11 @@ def trainer(cfg, progress: bool = True) -> cellrun.Outcome:
     return rl_trainer(cfg, progress) if isinstance(cfg, agents.BaselineConfig) else cellrun.goalseye(cfg, progress)
 
 
+def seeds_trainer(cfgs: list, progress: bool = True) -> list[cellrun.Outcome]:
+    """The seeds of one method as one program: rl_seeds, or the GoalsEye trainer's batched seeds."""
+    return rl_seeds(cfgs, progress) if isinstance(cfgs[0], agents.BaselineConfig) else cellrun.goalseye_seeds(cfgs, progress)
+
+
 def run(methods: list[str], scale: str, seeds: int, out: str, trajectories: int | None = None,
         reward: RewardConfig = RewardConfig(), progress: bool = True, command: str = "", rl: dict | None = None,
         first_seed: int = 0) -> dict:
@@ -185,7 +201,7 @@ def run(methods: list[str], scale: str, seeds: int, out: str, trajectories: int 
     (those of other seeds in `out` too: machines that ran other seeds add to one table)."""
     cells = plan(methods, scale, seeds, out, trajectories, reward, rl, first_seed)
     stopped = cellrun.run_cells(cells, os.path.join(out, "results"), trainer, progress, f"baseline {scale}",
-                                log=lambda m: log(m, file=sys.stderr))
+                                log=lambda m: log(m, file=sys.stderr), batch=seeds_trainer)
     return cellrun.finish(cells, out, stopped, lambda: build_report(scale, out, command))
 
 

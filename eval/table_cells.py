@@ -190,7 +190,9 @@ def seed_groups(cells: list, results_dir: str) -> list[list]:
     groups: dict = {}
     for c in cells:
         finished = os.path.exists(result_path(results_dir, c))
-        groups.setdefault(program_key(c.config) if not finished else (c.variant, c.seed, "done"), []).append(c)
+        key = getattr(c.config, "program_key", None)   # a configuration that says what its programs share
+        key = (key() if key else program_key(c.config)) if not finished else (c.variant, c.seed, "done")
+        groups.setdefault(key, []).append(c)
     return list(groups.values())
 
 

@@ -54,6 +54,7 @@ from flax import linen
 from models.normalizer import Normalizer
 from models.policy import PolicyParams
 from training import checkpoint
+from training.baselines import resumable
 from training.baselines.config import ESConfig, PPOConfig, RewardConfig, SACConfig  # noqa: F401 (re-exported)
 from training.baselines.env import reach
 from training.runconfig import RunConfig, to_json
@@ -94,6 +95,12 @@ class BaselineConfig:
         if self.throw_pool < 1:
             raise ValueError(f"throw_pool={self.throw_pool} must be >= 1")
         schedule(self)   # the budget: run exactly, or ValueError naming the nearest budgets
+
+    def program_key(self) -> str:
+        """What seeds trained as one program share (train_seeds): everything but the seed and
+        the run directory."""
+        import json
+        return json.dumps({"method": self.method, **state_json(self), "seed": None}, sort_keys=True, default=str)
 
     @property
     def steps(self) -> int:
@@ -247,6 +254,11 @@ def es_networks(cfg: BaselineConfig):
 
 
 # -- training ----------------------------------------------------------------------------------
+def _method(name: str):
+    from training.baselines import es, ppo, sac
+    return {"ppo": ppo, "sac": sac, "es": es}[name]
+
+
 def train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | None = None):
     """Run the method's loop (ppo.py, sac.py, es.py: brax's epochs, the state checkpointed under
     RUN/<method>_state/ and resumed from there) on schedule(cfg); returns the final policy as
@@ -259,30 +271,54 @@ def train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | Non
     where the time went: `points` [(env_steps, seconds since the call)] and `epochs`, brax's
     training/sps and training/walltime per epoch (the first epoch of a call includes compiling
     it; SAC's first includes its replay prefill)."""
-    from training.baselines import es, ppo, sac
+    return train_seeds([cfg], None if on_policy is None else lambda i, s, p: on_policy(s, p), progress, timing)[0]
+
+
+def train_seeds(cfgs: list[BaselineConfig], on_policy=None, progress=None, timing: dict | None = None) -> list:
+    """train() for configurations that differ only in seed and run directory, as one program
+    (their states stacked, the epoch vmapped: resumable.run_seeds); one configuration runs
+    unbatched, as brax does. on_policy(i, env_steps, PolicyParams) for seed i. Returns the final
+    PolicyParams of each."""
     timing = {} if timing is None else timing
+    cfg, n = cfgs[0], len(cfgs)
+    for c in cfgs[1:]:
+        if dataclasses.replace(c, run=dataclasses.replace(c.run, seed=0, run_dir="")) != \
+                dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, seed=0, run_dir="")):
+            raise ValueError(f"seeds trained together must differ only in seed and run directory: "
+                             f"{c.run.run_dir!r} differs from {cfg.run.run_dir!r} in more")
     t0 = time.perf_counter()
     sched = schedule(cfg)
-    steps_seen = []
+    steps_seen = [[] for _ in cfgs]
     timing.update(points=[], epochs=[])
 
-    def point(step, normalizer, policy):
-        steps_seen.append(int(step))
-        timing["points"].append((int(step), round(time.perf_counter() - t0, 3)))
+    def point(i, step, normalizer, policy):
+        steps_seen[i].append(int(step))
+        if i == 0:
+            timing["points"].append((int(step), round(time.perf_counter() - t0, 3)))
         if on_policy is not None:
-            on_policy(int(step), policy_params(cfg, normalizer, policy))
+            on_policy(i, int(step), policy_params(cfg, normalizer, policy))
 
-    method = {"ppo": ppo, "sac": sac, "es": es}[cfg.method]
-    params = method.train(cfg, sched.num_timesteps, sched.num_evals, cfg.run.run_dir, state_json(cfg), point,
-                          progress, timing)
-    final = policy_params(cfg, params[0], params[1])
-    ran = steps_seen[-1] if steps_seen else None
-    if ran != sched.num_timesteps and not cfg.reward.end_at_landing:
-        # (end_at_landing: ES counts the steps of episodes that ended early as none)
-        raise RuntimeError(f"brax's {cfg.method} ran {ran} environment steps; schedule() expected "
-                           f"{sched.num_timesteps} (has brax's arithmetic changed? see brax_env_steps)")
+    method = _method(cfg.method)
+    fresh = [functools.partial(method.initial_state, c, sched.num_timesteps, sched.num_evals) for c in cfgs]
+    if n == 1:
+        loop = method.schedule(cfg, sched.num_timesteps, sched.num_evals)
+        state = resumable.run(loop, resumable.state_dir(cfg.run.run_dir, cfg.method), state_json(cfg), fresh[0],
+                              sched.num_timesteps, functools.partial(point, 0), progress, timing)
+        finals = [loop.loop.acting(state)]
+    else:
+        loop = method.schedule(cfg, sched.num_timesteps, sched.num_evals, seeds=True)
+        state = resumable.run_seeds(loop, [resumable.state_dir(c.run.run_dir, c.method) for c in cfgs],
+                                    [state_json(c) for c in cfgs], fresh, sched.num_timesteps, point, progress, timing)
+        normalizer, policy = loop.loop.acting(state)
+        finals = [jax.tree.map(lambda x: x[i], (normalizer, policy)) for i in range(n)]
+    for seen in steps_seen:
+        ran = seen[-1] if seen else None
+        if ran != sched.num_timesteps and not cfg.reward.end_at_landing:
+            # (end_at_landing: ES counts the steps of episodes that ended early as none)
+            raise RuntimeError(f"{cfg.method} ran {ran} environment steps; schedule() expected "
+                               f"{sched.num_timesteps} (has brax's arithmetic changed? see brax_env_steps)")
     timing["train_s"] = round(time.perf_counter() - t0, 3)
-    return final
+    return [policy_params(cfg, *f) for f in finals]
 
 
 def state_json(cfg: BaselineConfig) -> dict:

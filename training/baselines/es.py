@@ -121,7 +121,7 @@ def _parts(cfg) -> Parts:
     return Parts(env, network, optimizer, epoch)
 
 
-def initial_state(cfg) -> ESState:
+def initial_state(cfg, num_timesteps: int = 0, num_evals: int = 0) -> ESState:
     """brax es.train's initial TrainingState (same network key), step 0."""
     from brax.training.acme import running_statistics, specs
     p = parts(cfg)
@@ -139,15 +139,12 @@ def eval_steps(num_timesteps: int, num_evals: int) -> list[int]:
     return [num_timesteps - (after - 1 - i) * between for i in range(after)]
 
 
-def train(cfg, num_timesteps: int, num_evals: int, run_dir: str, cfg_json: dict, point, progress=None,
-          timing: dict | None = None):
-    """Run ES from RUN/es_state's newest checkpoint (or from the start) to `num_timesteps`
-    environment steps (resumable.run); point(steps, normalizer, policy) at brax's curve points
-    (0 when num_evals > 1, then eval_steps). Returns (normalizer, policy) at the end."""
-    loop = resumable.Loop(epoch=parts(cfg).epoch, steps=lambda s: int(s.num_env_steps),
+def schedule(cfg, num_timesteps: int, num_evals: int, seeds: bool = False) -> resumable.Schedule:
+    """The loop (its epoch vmapped over stacked seeds if `seeds`) and brax's curve points: 0 when
+    num_evals > 1, then eval_steps."""
+    epoch = parts(cfg).epoch
+    loop = resumable.Loop(epoch=jax.jit(jax.vmap(epoch)) if seeds else epoch,
+                          steps=lambda s: resumable.first_int(s.num_env_steps, seeds),
                           acting=lambda s: (s.normalizer_params, s.policy_params),
                           unit=2 * cfg.es.population_size * cfg.run.world.horizon)
-    state = resumable.run(loop, resumable.state_dir(run_dir, "es"), cfg_json, lambda: initial_state(cfg),
-                          num_timesteps, eval_steps(num_timesteps, num_evals), num_evals > 1, point, progress,
-                          timing, cfg.es.checkpoint_every)
-    return state.normalizer_params, state.policy_params
+    return resumable.Schedule(loop, eval_steps(num_timesteps, num_evals), num_evals > 1, cfg.es.checkpoint_every)

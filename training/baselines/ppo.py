@@ -153,17 +153,11 @@ def initial_state(cfg, num_timesteps: int, num_evals: int) -> PPOState:
     return PPOState(*strong, local_key)
 
 
-def train(cfg, num_timesteps: int, num_evals: int, run_dir: str, cfg_json: dict, point, progress=None,
-          timing: dict | None = None):
-    """Run PPO from RUN/ppo_state's newest checkpoint (or from the start) to `num_timesteps`
-    environment steps (resumable.run); point(steps, normalizer, policy) at 0 and after every
-    epoch, as brax's policy_params_fn. Returns (normalizer, policy) at the end."""
+def schedule(cfg, num_timesteps: int, num_evals: int, seeds: bool = False) -> resumable.Schedule:
+    """The loop (its epoch vmapped over stacked seeds if `seeds`) and brax's curve points: 0 and
+    after every epoch (its policy_params_fn)."""
     pt = parts(cfg, num_timesteps, num_evals)
-    loop = resumable.Loop(epoch=pt.epoch, steps=lambda s: int(s.training.env_steps),
-                          acting=lambda s: (s.training.normalizer_params, s.training.params.policy),
-                          unit=pt.unit)
-    every_epoch = [pt.unit * (i + 1) for i in range(max(num_evals - 1, 1))]
-    state = resumable.run(loop, resumable.state_dir(run_dir, "ppo"), cfg_json,
-                          lambda: initial_state(cfg, num_timesteps, num_evals), num_timesteps, every_epoch, True,
-                          point, progress, timing)
-    return state.training.normalizer_params, state.training.params.policy
+    loop = resumable.Loop(epoch=jax.jit(jax.vmap(pt.epoch)) if seeds else pt.epoch,
+                          steps=lambda s: resumable.first_int(s.training.env_steps, seeds),
+                          acting=lambda s: (s.training.normalizer_params, s.training.params.policy), unit=pt.unit)
+    return resumable.Schedule(loop, [pt.unit * (i + 1) for i in range(max(num_evals - 1, 1))], True)

@@ -25,6 +25,20 @@ class Loop:
     unit: int                                  # environment steps per epoch
 
 
+@dataclasses.dataclass(frozen=True)
+class Schedule:
+    """A method's loop and where brax hands its policy out."""
+    loop: Loop
+    thresholds: list              # env steps: a curve point after the first epoch reaching each
+    point_at_zero: bool           # a curve point before training
+    checkpoint_every: int = 1     # epochs between checkpoints (and at every point)
+
+
+def first_int(steps, seeds: bool) -> int:
+    """A step counter (int32 or brax's UInt64) as an int; of seed 0 if `seeds` (stacked)."""
+    return int(jax.tree.map(lambda x: x[0], steps) if seeds else steps)
+
+
 def state_dir(run_dir: str, method: str) -> str:
     return os.path.join(run_dir, f"{method}_state")
 
@@ -39,41 +53,64 @@ def save(directory: str, step: int, state, points: list, cfg_json: dict) -> None
     checkpoint.save(directory, step, _tree(state, points), {**cfg_json, "curve_points": len(points)}, keep=2)
 
 
-def resume(directory: str, like, like_point, cfg_json: dict) -> tuple[Any, list] | None:
-    """(state, points) of the newest checkpoint whose files match their checksums, or None if
-    there is none (damaged ones are removed: the run redoes them). `like` and `like_point`: the
-    structure of the state and of one point (jax.ShapeDtypeStructs will do). ValueError if it
-    was saved with another configuration than `cfg_json`."""
+def good_steps(directory: str) -> list[int]:
+    """Saved steps whose files match their checksums, oldest first; damaged ones are removed
+    (the run redoes them)."""
     saved = checkpoint.steps(directory)
     damaged = [s for s in saved if checkpoint.damage(directory, s)]
     if damaged:
         checkpoint.discard(directory, damaged)
-    good = [s for s in saved if s not in damaged]
+    return [s for s in saved if s not in damaged]
+
+
+def resume(directory: str, like, like_point, cfg_json: dict, step: int | None = None) -> tuple[Any, list] | None:
+    """(state, points) of checkpoint `step` (default: the newest whose files match their
+    checksums), or None if there is none. `like` and `like_point`: the structure of the state
+    and of one point (jax.ShapeDtypeStructs will do). ValueError if it was saved with another
+    configuration than `cfg_json`."""
+    good = good_steps(directory)
     if not good:
         return None
-    saved_cfg = checkpoint.restore_config(directory, good[-1])
+    step = good[-1] if step is None else step
+    saved_cfg = checkpoint.restore_config(directory, step)
     n = saved_cfg.pop("curve_points")
     saved_cfg.pop("checkpoint_format", None)
     if saved_cfg != cfg_json:
         diff = sorted(k for k in set(saved_cfg) | set(cfg_json) if saved_cfg.get(k) != cfg_json.get(k))
         raise ValueError(f"{directory} holds a state of another configuration (differs in {', '.join(diff)}); "
                          f"run with the same settings to resume it, or another --out")
-    tree, _ = checkpoint.restore(directory, _tree(like, [(0, *like_point)] * n), good[-1])
+    tree, _ = checkpoint.restore(directory, _tree(like, [(0, *like_point)] * n), step)
     points = [(int(tree["points"][str(i)]["steps"]), tree["points"][str(i)]["normalizer"],
                tree["points"][str(i)]["policy"]) for i in range(n)]
     return tree["state"], points
 
 
-def run(loop: Loop, directory: str, cfg_json: dict, fresh: Callable[[], Any], num_timesteps: int,
-        thresholds: list[int], point_at_zero: bool, point, progress=None, timing: dict | None = None,
-        checkpoint_every: int = 1):
-    """Epochs from the newest checkpoint in `directory` (or from fresh()) until num_timesteps
-    environment steps. point(steps, normalizer, policy) at 0 (point_at_zero) and after the first
-    epoch that reaches each of `thresholds` (brax's next_eval_step: one point per epoch at
-    most), replayed from the checkpoint for the points before it. A checkpoint at 0, at every
-    point, every `checkpoint_every` epochs and at the end. progress(steps, metrics) after every
-    epoch (brax's training/sps, training/walltime and the epoch's metrics); timing['epochs']
-    gets the same. Returns the final state."""
+def resume_seeds(directories: list[str], like, like_point, cfg_jsons: list[dict]) -> tuple[Any, list] | None:
+    """(stacked state [S, ...], points per seed) of the newest step every seed's directory holds
+    (a stop between two seeds' saves leaves some one epoch ahead; two steps are kept), or None
+    if none holds any. ValueError if some do and no step is common to all."""
+    held = [set(good_steps(d)) for d in directories]
+    if not any(held):
+        return None
+    common = set.intersection(*held)
+    if not common:
+        raise ValueError(f"the seeds' states are at different steps ({', '.join(f'{d}: {sorted(h)}' for d, h in zip(directories, held))}); "
+                         f"resume them one by one (--seed S --seeds 1) or delete their *_state directories")
+    found = [resume(d, like, like_point, c, max(common)) for d, c in zip(directories, cfg_jsons)]
+    return jax.tree.map(lambda *x: jnp.stack(x), *[f[0] for f in found]), [f[1] for f in found]
+
+
+def run(sched: Schedule, directory: str, cfg_json: dict, fresh: Callable[[], Any], num_timesteps: int,
+        point, progress=None, timing: dict | None = None):
+    """Epochs of sched.loop from the newest checkpoint in `directory` (or from fresh()) until
+    num_timesteps environment steps. point(steps, normalizer, policy) at 0 (point_at_zero) and
+    after the first epoch that reaches each of the thresholds (brax's next_eval_step: one point
+    per epoch at most), replayed from the checkpoint for the points before it. A checkpoint at 0,
+    at every point, every `checkpoint_every` epochs and at the end. progress(steps, metrics)
+    after every epoch (brax's training/sps, training/walltime and the epoch's metrics);
+    timing['epochs'] gets the same. Returns the final state."""
+    loop, thresholds, point_at_zero, checkpoint_every = (sched.loop, sched.thresholds, sched.point_at_zero,
+                                                         sched.checkpoint_every)
     timing = {} if timing is None else timing
     like = jax.eval_shape(fresh)
     found = resume(directory, like, jax.eval_shape(loop.acting, like), cfg_json)
@@ -105,4 +142,61 @@ def run(loop: Loop, directory: str, cfg_json: dict, fresh: Callable[[], Any], nu
             point(steps, *points[-1][1:])
         if due or epochs % checkpoint_every == 0 or steps >= num_timesteps:
             save(directory, steps, state, points, cfg_json)
+    return state
+
+
+def run_seeds(sched: Schedule, directories: list[str], cfg_jsons: list[dict], fresh: list[Callable[[], Any]],
+              num_timesteps: int, point, progress=None, timing: dict | None = None):
+    """run() for several seeds trained as one program: sched.loop works on the seeds' states
+    stacked on a leading axis (its epoch vmapped; steps read from seed 0: every seed runs the
+    same schedule), each seed's slice checkpointed in its own directory. point(i, steps,
+    normalizer, policy) for seed i. Returns the final stacked state."""
+    loop, thresholds, point_at_zero, checkpoint_every = (sched.loop, sched.thresholds, sched.point_at_zero,
+                                                         sched.checkpoint_every)
+    timing = {} if timing is None else timing
+    n = len(directories)
+    like = jax.eval_shape(fresh[0])
+    found = resume_seeds(directories, like, jax.eval_shape(loop.acting, like), cfg_jsons)
+    if found:
+        state, points = found
+    else:
+        state, points = jax.tree.map(lambda *x: jnp.stack(x), *[f() for f in fresh]), [[] for _ in range(n)]
+    seed = lambda tree, i: jax.tree.map(lambda x: x[i], tree)   # noqa: E731
+
+    def save_all(steps):
+        for i in range(n):
+            save(directories[i], steps, seed(state, i), points[i], cfg_jsons[i])
+
+    def add_point(steps):
+        normalizer, policy = loop.acting(state)
+        for i in range(n):
+            points[i].append((steps, seed(normalizer, i), seed(policy, i)))
+            point(i, steps, *points[i][-1][1:])
+
+    for i in range(n):
+        for s, nm, p in points[i]:
+            point(i, s, nm, p)
+    if not found:
+        if point_at_zero:
+            add_point(0)
+        save_all(0)
+    evaluated = len(points[0]) - point_at_zero
+    walltime, epochs = 0.0, 0
+    while loop.steps(state) < num_timesteps:
+        t = time.perf_counter()
+        state, metrics = loop.epoch(state)
+        metrics = jax.device_get(metrics)
+        dt = time.perf_counter() - t
+        walltime, epochs, steps = walltime + dt, epochs + 1, loop.steps(state)
+        row = {"training/sps": n * loop.unit / dt, "training/walltime": walltime,
+               **{f"training/{k}": float(jnp.mean(v)) for k, v in metrics.items()}}
+        timing.setdefault("epochs", []).append({"env_steps": steps, "sps": row["training/sps"], "walltime": walltime})
+        if progress is not None:
+            progress(steps, row)
+        due = evaluated < len(thresholds) and steps >= thresholds[evaluated]
+        if due:
+            evaluated += 1
+            add_point(steps)
+        if due or epochs % checkpoint_every == 0 or steps >= num_timesteps:
+            save_all(steps)
     return state

@@ -190,20 +190,19 @@ def initial_state(cfg, num_timesteps: int, num_evals: int) -> SACState:
     return SACState(*strong, local_key)
 
 
-def train(cfg, num_timesteps: int, num_evals: int, run_dir: str, cfg_json: dict, point, progress=None,
-          timing: dict | None = None):
-    """Run SAC from RUN/sac_state's newest checkpoint (or from the start) to `num_timesteps`
-    environment steps (resumable.run: the first epoch is brax's prefill and first training
-    epoch); point(steps, normalizer, policy) at 0 when num_evals > 1 and after every epoch, where
-    brax's evaluator scores its policy. Returns (normalizer, policy) at the end."""
+def schedule(cfg, num_timesteps: int, num_evals: int, seeds: bool = False) -> resumable.Schedule:
+    """The loop (vmapped over stacked seeds if `seeds`; its first epoch is brax's replay prefill
+    and first training epoch) and brax's curve points: 0 when num_evals > 1, then after every
+    epoch, where brax's evaluator scores its policy."""
     pt = parts(cfg, num_timesteps, num_evals)
+    prefill, epoch = (jax.jit(jax.vmap(pt.prefill)), jax.jit(jax.vmap(pt.epoch))) if seeds else (pt.prefill, pt.epoch)
 
-    def epoch(st):
-        return pt.epoch(pt.prefill(st) if int(st.training.env_steps) == 0 else st)
-    loop = resumable.Loop(epoch=epoch, steps=lambda st: int(st.training.env_steps),
+    def steps(st):
+        return resumable.first_int(st.training.env_steps, seeds)
+
+    def first_prefilled(st):
+        return epoch(prefill(st) if steps(st) == 0 else st)
+    loop = resumable.Loop(epoch=first_prefilled, steps=steps,
                           acting=lambda st: (st.training.normalizer_params, st.training.policy_params), unit=pt.unit)
-    after_each = [pt.prefill_steps + pt.unit * (i + 1) for i in range(max(num_evals - 1, 1))]
-    state = resumable.run(loop, resumable.state_dir(run_dir, "sac"), cfg_json,
-                          lambda: initial_state(cfg, num_timesteps, num_evals), num_timesteps, after_each,
-                          num_evals > 1, point, progress, timing)
-    return state.training.normalizer_params, state.training.policy_params
+    return resumable.Schedule(loop, [pt.prefill_steps + pt.unit * (i + 1) for i in range(max(num_evals - 1, 1))],
+                              num_evals > 1)
