@@ -282,8 +282,7 @@ def train_seeds(cfgs: list[BaselineConfig], on_policy=None, progress=None, timin
     timing = {} if timing is None else timing
     cfg, n = cfgs[0], len(cfgs)
     for c in cfgs[1:]:
-        if dataclasses.replace(c, run=dataclasses.replace(c.run, seed=0, run_dir="")) != \
-                dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, seed=0, run_dir="")):
+        if resumable.seedless(c) != resumable.seedless(cfg):
             raise ValueError(f"seeds trained together must differ only in seed and run directory: "
                              f"{c.run.run_dir!r} differs from {cfg.run.run_dir!r} in more")
     t0 = time.perf_counter()

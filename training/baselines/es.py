@@ -52,7 +52,7 @@ class Parts:
 def parts(cfg) -> Parts:
     """brax es.train's setup for cfg (agents.BaselineConfig with method 'es'), built once per
     configuration in a process whatever its seed and run directory (the epoch compiles once)."""
-    return _parts(dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, seed=0, run_dir="")))
+    return _parts(resumable.seedless(cfg))
 
 
 def keys(seed: int) -> tuple[jax.Array, jax.Array]:

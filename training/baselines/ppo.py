@@ -47,7 +47,7 @@ class Parts:
 def parts(cfg, num_timesteps: int, num_evals: int) -> Parts:
     """brax ppo.train's setup for cfg (agents.BaselineConfig, method 'ppo') and a schedule, built
     once per configuration in a process whatever its seed and run directory."""
-    return _parts(dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, seed=0, run_dir="")),
+    return _parts(resumable.seedless(cfg),
                   num_timesteps, num_evals)
 
 

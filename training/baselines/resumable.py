@@ -34,6 +34,12 @@ class Schedule:
     checkpoint_every: int = 1     # epochs between checkpoints (and at every point)
 
 
+def seedless(cfg):
+    """A baseline configuration without its seed and run directory: what a method's compiled
+    epoch depends on (its cache key), and what seeds trained together must share."""
+    return dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, seed=0, run_dir=""))
+
+
 def first_int(steps, seeds: bool) -> int:
     """A step counter (int32 or brax's UInt64) as an int; of seed 0 if `seeds` (stacked)."""
     return int(jax.tree.map(lambda x: x[0], steps) if seeds else steps)
