@@ -91,10 +91,10 @@ def resume(directory: str, like, like_point, cfg_json: dict, step: int | None = 
     return tree["state"], points
 
 
-def resume_seeds(directories: list[str], like, like_point, cfg_jsons: list[dict]) -> tuple[Any, list] | None:
-    """(stacked state [S, ...], points per seed) of the newest step every seed's directory holds
-    (a stop between two seeds' saves leaves some one epoch ahead; two steps are kept), or None
-    if none holds any. ValueError if some do and no step is common to all."""
+def resume_seeds(directories: list[str], like, like_point, cfg_jsons: list[dict]) -> tuple[list, list] | None:
+    """([state per seed], [points per seed]) of the newest step every seed's directory holds (a
+    stop between two seeds' saves leaves some one epoch ahead; two steps are kept), or None if
+    none holds any. ValueError if some do and no step is common to all."""
     held = [set(good_steps(d)) for d in directories]
     if not any(held):
         return None
@@ -103,71 +103,44 @@ def resume_seeds(directories: list[str], like, like_point, cfg_jsons: list[dict]
         raise ValueError(f"the seeds' states are at different steps ({', '.join(f'{d}: {sorted(h)}' for d, h in zip(directories, held))}); "
                          f"resume them one by one (--seed S --seeds 1) or delete their *_state directories")
     found = [resume(d, like, like_point, c, max(common)) for d, c in zip(directories, cfg_jsons)]
-    return jax.tree.map(lambda *x: jnp.stack(x), *[f[0] for f in found]), [f[1] for f in found]
+    return [f[0] for f in found], [f[1] for f in found]
 
 
 def run(sched: Schedule, directory: str, cfg_json: dict, fresh: Callable[[], Any], num_timesteps: int,
         point, progress=None, timing: dict | None = None):
     """Epochs of sched.loop from the newest checkpoint in `directory` (or from fresh()) until
-    num_timesteps environment steps. point(steps, normalizer, policy) at 0 (point_at_zero) and
-    after the first epoch that reaches each of the thresholds (brax's next_eval_step: one point
-    per epoch at most), replayed from the checkpoint for the points before it. A checkpoint at 0,
-    at every point, every `checkpoint_every` epochs and at the end. progress(steps, metrics)
-    after every epoch (brax's training/sps, training/walltime and the epoch's metrics);
-    timing['epochs'] gets the same. Returns the final state."""
-    loop, thresholds, point_at_zero, checkpoint_every = (sched.loop, sched.thresholds, sched.point_at_zero,
-                                                         sched.checkpoint_every)
-    timing = {} if timing is None else timing
-    like = jax.eval_shape(fresh)
-    found = resume(directory, like, jax.eval_shape(loop.acting, like), cfg_json)
-    state, points = found if found else (fresh(), [])
-    for s, n, p in points:
-        point(s, n, p)
-    if not found:
-        if point_at_zero:
-            points.append((0, *loop.acting(state)))
-            point(0, *points[-1][1:])
-        save(directory, 0, state, points, cfg_json)
-    evaluated = len(points) - point_at_zero     # thresholds already passed
-    walltime, epochs = 0.0, 0
-    while loop.steps(state) < num_timesteps:
-        t = time.perf_counter()
-        state, metrics = loop.epoch(state)
-        metrics = jax.device_get(metrics)
-        dt = time.perf_counter() - t
-        walltime, epochs, steps = walltime + dt, epochs + 1, loop.steps(state)
-        row = {"training/sps": loop.unit / dt, "training/walltime": walltime,
-               **{f"training/{k}": float(v) for k, v in metrics.items()}}
-        timing.setdefault("epochs", []).append({"env_steps": steps, "sps": row["training/sps"], "walltime": walltime})
-        if progress is not None:
-            progress(steps, row)
-        due = evaluated < len(thresholds) and steps >= thresholds[evaluated]
-        if due:
-            evaluated += 1
-            points.append((steps, *loop.acting(state)))
-            point(steps, *points[-1][1:])
-        if due or epochs % checkpoint_every == 0 or steps >= num_timesteps:
-            save(directory, steps, state, points, cfg_json)
-    return state
+    num_timesteps environment steps, unbatched (as brax runs one seed): run_seeds of one seed.
+    point(steps, normalizer, policy). Returns the final state."""
+    return run_seeds(sched, [directory], [cfg_json], [fresh], num_timesteps, lambda _, *a: point(*a), progress,
+                     timing, stacked=False)
 
 
 def run_seeds(sched: Schedule, directories: list[str], cfg_jsons: list[dict], fresh: list[Callable[[], Any]],
-              num_timesteps: int, point, progress=None, timing: dict | None = None):
-    """run() for several seeds trained as one program: sched.loop works on the seeds' states
-    stacked on a leading axis (its epoch vmapped; steps read from seed 0: every seed runs the
-    same schedule), each seed's slice checkpointed in its own directory. point(i, steps,
-    normalizer, policy) for seed i. Returns the final stacked state."""
+              num_timesteps: int, point, progress=None, timing: dict | None = None, stacked: bool = True):
+    """Epochs of sched.loop from the newest checkpoint every seed's directory holds (or from
+    fresh()) until num_timesteps environment steps. With `stacked`, the seeds train as one
+    program: sched.loop works on their states stacked on a leading axis (its epoch vmapped;
+    steps read from seed 0: every seed runs the same schedule), each seed's slice checkpointed
+    in its own directory; without, one seed's state as it is.
+
+    point(i, steps, normalizer, policy) for seed i at 0 (point_at_zero) and after the first
+    epoch that reaches each of the thresholds (brax's next_eval_step: one point per epoch at
+    most), replayed from the checkpoint for the points before it. A checkpoint at 0, at every
+    point, every `checkpoint_every` epochs and at the end. progress(steps, metrics) after every
+    epoch (brax's training/sps, training/walltime and the epoch's metrics, means over seeds);
+    timing['epochs'] gets the same. Returns the final (stacked) state."""
     loop, thresholds, point_at_zero, checkpoint_every = (sched.loop, sched.thresholds, sched.point_at_zero,
                                                          sched.checkpoint_every)
     timing = {} if timing is None else timing
     n = len(directories)
+    if stacked:
+        stack, seed = (lambda xs: jax.tree.map(lambda *x: jnp.stack(x), *xs)), (lambda t, i: jax.tree.map(lambda x: x[i], t))
+    else:
+        stack, seed = (lambda xs: xs[0]), (lambda t, i: t)
     like = jax.eval_shape(fresh[0])
     found = resume_seeds(directories, like, jax.eval_shape(loop.acting, like), cfg_jsons)
-    if found:
-        state, points = found
-    else:
-        state, points = jax.tree.map(lambda *x: jnp.stack(x), *[f() for f in fresh]), [[] for _ in range(n)]
-    seed = lambda tree, i: jax.tree.map(lambda x: x[i], tree)   # noqa: E731
+    states, points = found if found else ([f() for f in fresh], [[] for _ in range(n)])
+    state = stack(states)
 
     def save_all(steps):
         for i in range(n):
@@ -186,7 +159,7 @@ def run_seeds(sched: Schedule, directories: list[str], cfg_jsons: list[dict], fr
         if point_at_zero:
             add_point(0)
         save_all(0)
-    evaluated = len(points[0]) - point_at_zero
+    evaluated = len(points[0]) - point_at_zero     # thresholds already passed
     walltime, epochs = 0.0, 0
     while loop.steps(state) < num_timesteps:
         t = time.perf_counter()
