@@ -129,7 +129,14 @@ def rl_seeds(cfgs: list, progress: bool = True) -> list[cellrun.Outcome]:
     together at the end, every point on the same goals and throws (key run.seed + 1) in one
     batched rollout per seed (`curve_metrics`): one episode's latency instead of one per point.
     Where the time went is written to RUN/timing.json (brax's epochs, the curve, the save, the
-    final evaluation)."""
+    final evaluation). Seeds whose stacked epoch would not fit in the device's memory train in
+    groups that do (agents.seeds_per_program), one group after another."""
+    k = agents.seeds_per_program(cfgs[0], len(cfgs), log=lambda m: log(f"[baseline] {m}", file=sys.stderr))
+    return [o for i in range(0, len(cfgs), k) for o in _rl_program(cfgs[i:i + k], progress)]
+
+
+def _rl_program(cfgs: list, progress: bool) -> list[cellrun.Outcome]:
+    """rl_seeds for seeds that train as one program."""
     cfg = cfgs[0]
     h = cfg.run.world.horizon
     points, timing = [[] for _ in cfgs], {}

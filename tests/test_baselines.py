@@ -259,6 +259,105 @@ def test_throws_are_solved_ahead_and_never_reused(monkeypatch):
     assert solves and set(solves) == {n * pool}          # solved in batches of n x pool, never one by one
 
 
+def _top_level_conds(fn, *args) -> int:
+    return sum(e.primitive.name == "cond" for e in jax.make_jaxpr(fn)(*args).eqns)
+
+
+def test_seeds_vmapped_restart_each_seed_as_alone_and_branch_only_when_needed(monkeypatch):
+    """Seeds stacked under the seeds' vmap (resumable.over_seeds): each seed's episodes start
+    from the same throws as alone, also when only one seed's pool runs out, and the restart and
+    the pool's refill stay lax.cond branches (vmap turns a cond on a per-seed predicate into a
+    select that solves throws and resets every environment at every step)."""
+    from brax.envs.base import Env, State
+
+    from training.baselines import env as benv
+    from training.baselines import resumable
+    from ttmjx.world import thrower
+
+    monkeypatch.setattr(thrower, "sample_throws", lambda key, cfg, n: thrower.Throw(*jax.random.normal(key, (4, n, 3))))
+
+    class Stub(Env):
+        """Episodes of 2 steps whose observation is the throw's launch velocity."""
+        cfg = WORLD
+
+        def reset_with(self, rng, th):
+            z = jnp.zeros(())
+            return State(pipeline_state={"t": jnp.int32(0)}, obs=th.launch_vel, reward=z, done=z, metrics={}, info={})
+
+        def step(self, state, action):
+            t = state.pipeline_state["t"] + 1
+            return state.replace(pipeline_state={"t": t}, done=(t >= 2).astype(jnp.float32))
+
+        reset = None
+        observation_size, action_size, backend = 3, 1, "stub"
+
+    n, pool = 3, 3
+    env = benv.wrap_fresh(Stub(), episode_length=2, pool=pool)
+    starts = [env.reset(jax.random.split(jax.random.PRNGKey(s), n)) for s in (0, 1)]
+    starts[1].info["throw_next"] = jnp.full((n,), pool - 1, jnp.int32)   # seed 1 refills one episode earlier
+
+    def run(s):
+        return jax.lax.scan(lambda s, _: (env.step(s, jnp.zeros((n, 1))), env.step(s, jnp.zeros((n, 1))).obs),
+                            s, None, length=2 * pool + 2)[1]
+    alone = [jax.jit(run)(s) for s in starts]
+    stacked = jax.tree.map(lambda *x: jnp.stack(x), *starts)
+    together = resumable.over_seeds(run)(stacked)
+    for i in (0, 1):
+        np.testing.assert_array_equal(np.asarray(together[i]), np.asarray(alone[i]))
+    assert not np.allclose(alone[0], alone[1])
+    def step(s):    # a new function each time: jax caches a function's trace
+        return env.step(s, jnp.zeros((n, 1)))
+    assert _top_level_conds(jax.vmap(step, axis_name=resumable.SEED_AXIS), stacked) == 1   # the restart
+    monkeypatch.setattr(benv, "any_seed", lambda pred: pred)   # a per-seed predicate: select, no branch
+    assert _top_level_conds(jax.vmap(lambda s: step(s), axis_name=resumable.SEED_AXIS), stacked) == 0
+
+
+def test_sac_buffer_inserts_each_seed_as_brax_and_rolls_only_when_needed():
+    """SAC's replay queue under the seeds' vmap inserts each seed's transitions exactly as brax's
+    UniformSamplingQueue does alone, one seed's buffer full and rolling, the other's not, and its
+    roll stays a lax.cond branch."""
+    from brax.training import replay_buffers
+
+    from training.baselines import resumable, sac
+    kw = dict(max_replay_size=10, dummy_data_sample=jnp.zeros((2,)), sample_batch_size=2)
+    brax_q, seeds_q = replay_buffers.UniformSamplingQueue(**kw), sac._seeds_queue(replay_buffers)(**kw)
+    batch = lambda k: jax.random.normal(jax.random.PRNGKey(k), (3, 2))   # noqa: E731
+    states = [brax_q.init(jax.random.PRNGKey(s)) for s in (0, 1)]
+    for k in range(3):                                   # seed 1 three inserts ahead: 9 of 10 full
+        states[1] = brax_q.insert(states[1], batch(100 + k))
+    stacked = jax.tree.map(lambda *x: jnp.stack(x), *states)
+    insert = jax.vmap(seeds_q.insert, axis_name=resumable.SEED_AXIS)
+    for k in range(3):
+        b = batch(k)
+        states = [brax_q.insert(s, b) for s in states]
+        stacked = jax.jit(insert)(stacked, jnp.stack([b, b]))
+        for i in (0, 1):
+            for a, r in zip(jax.tree.leaves(jax.tree.map(lambda x: x[i], stacked)), jax.tree.leaves(states[i]), strict=True):
+                np.testing.assert_array_equal(np.asarray(a), np.asarray(r))
+    assert _top_level_conds(insert, stacked, jnp.stack([batch(0)] * 2)) == 1
+
+
+def test_seeds_that_do_not_fit_the_device_train_in_groups_that_do(monkeypatch):
+    """The seeds of a method train as one program where their stacked epoch fits in 90% of the
+    device's memory (XLA's memory analysis of the compiled epoch), else in groups that fit, one
+    after another, each group a program; on a CPU (no device limit) all together."""
+    cfg = baselines.method_config("es", "tiny", 0, "/tmp/fit", trajectories=4)
+    need = agents.program_bytes(cfg, 2)
+    assert need > 0
+    monkeypatch.setattr(agents, "device_bytes_limit", lambda: int(need / 0.9) + 1)
+    assert agents.seeds_per_program(cfg, 2) == 2
+    lines = []
+    monkeypatch.setattr(agents, "device_bytes_limit", lambda: int(need * 0.6 / 0.9))
+    assert agents.seeds_per_program(cfg, 2, log=lines.append) == 1
+    assert re.search(r"es: 2 seeds as one program need [\d.]+ GiB .* trained 1 at a time", lines[0])
+    monkeypatch.setattr(agents, "device_bytes_limit", lambda: None)
+    assert agents.seeds_per_program(cfg, 5) == 5
+    programs = []
+    monkeypatch.setattr(agents, "seeds_per_program", lambda c, n, log=None: 2)
+    monkeypatch.setattr(baselines, "_rl_program", lambda cfgs, progress: programs.append(len(cfgs)) or cfgs)
+    assert baselines.rl_seeds([cfg] * 5) == [cfg] * 5 and programs == [2, 2, 1]
+
+
 def test_sac_q_networks_are_the_policy_size():
     """brax's make_sac_networks has one hidden size for both networks: no q_hidden to ignore."""
     assert "q_hidden" not in {f.name for f in dataclasses.fields(agents.SACConfig)}

@@ -134,10 +134,11 @@ def test_seeds_trained_together_are_each_seed_alone(method, tmp_path, monkeypatc
     alone, within float32 reduction order: vmapped matrix products sum in another order. ES as
     configured (measured: 2e-4 relative at most after its 2 updates); PPO and SAC at learning
     rate 0, because their 80 and 19 sequential Adam updates amplify that order into percent
-    differences: their keys, environments, rollouts, normalizer and buffers stay compared. PPO's
-    3,200 environment steps per seed still carry that order through the ball's contacts into the
-    observation statistics (measured: 1.3% relative at most), so PPO's end is compared only in
-    its curve's steps and its policy at 0, which must match exactly. A stop between the two
+    differences. Their environment steps still carry that order through the ball's contacts into
+    the observation statistics, which the first layer of the final policy folds in (PPO 1.3%
+    relative at most on an AMD EPYC; SAC 1e-4 there, 2e-3 on an Intel Xeon): so their end is
+    compared in every layer after the first, exactly (learning rate 0: each seed's initial
+    weights, from its own keys), in the curve's steps and in the policy at 0, exactly. A stop between the two
     seeds' saves of the first epoch leaves seed 0 one checkpoint ahead: the same call resumes
     both from the step they share."""
     from training.baselines import resumable
@@ -167,7 +168,11 @@ def test_seeds_trained_together_are_each_seed_alone(method, tmp_path, monkeypatc
     assert [[st for st, _ in x] for x in seen] == [[st for st, _ in x] for x in seen_alone]
     for a, b in zip(jax.tree.leaves([x[0] for x in seen]), jax.tree.leaves([x[0] for x in seen_alone]), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    if method != "ppo":
+    if method == "es":
         for a, b in zip(jax.tree.leaves(together), jax.tree.leaves(alone), strict=True):
-            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-3 if method == "es" else 1e-4, atol=1e-6)
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-3, atol=1e-6)
+    else:
+        later = lambda ps: [({k: v for k, v in p.net["params"].items() if k != "dense0"}, p.norm) for p in ps]  # noqa: E731
+        for a, b in zip(jax.tree.leaves(later(together)), jax.tree.leaves(later(alone)), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert not np.allclose(jax.tree.leaves(together[0])[0], jax.tree.leaves(together[1])[0])   # two seeds

@@ -259,6 +259,44 @@ def _method(name: str):
     return {"ppo": ppo, "sac": sac, "es": es}[name]
 
 
+def device_bytes_limit() -> int | None:
+    """The memory one program may use on JAX's first device; None on a CPU (host memory) or
+    where the device does not say."""
+    dev = jax.devices()[0]
+    if dev.platform == "cpu":
+        return None
+    return (dev.memory_stats() or {}).get("bytes_limit")
+
+
+def program_bytes(cfg: BaselineConfig, n: int) -> int:
+    """Device memory of the method's epoch for n seeds stacked (XLA's compiled memory analysis:
+    arguments, outputs and temporaries), compiled here without running."""
+    sched = schedule(cfg)
+    method = _method(cfg.method)
+    one = jax.eval_shape(lambda: method.initial_state(cfg, sched.num_timesteps, sched.num_evals))
+    stacked = jax.tree.map(lambda x: jax.ShapeDtypeStruct((n,) + x.shape, x.dtype), one)
+    program = method.schedule(cfg, sched.num_timesteps, sched.num_evals, seeds=True).loop.program
+    m = program.lower(stacked).compile().memory_analysis()
+    return int(m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes)
+
+
+def seeds_per_program(cfg: BaselineConfig, n: int, log=None) -> int:
+    """How many of n seeds one program trains at once: all of them where their stacked epoch
+    fits in 90% of the device's memory (device_bytes_limit; always on a CPU), else as many as
+    fit in proportion (the epoch's memory grows with the seeds stacked), at least 1."""
+    limit = device_bytes_limit() if n > 1 else None
+    if limit is None:
+        return n
+    need = program_bytes(cfg, n)
+    if need <= 0.9 * limit:
+        return n
+    k = max(1, min(n - 1, int(0.9 * limit * n // need)))
+    if log is not None:
+        log(f"{cfg.method}: {n} seeds as one program need {need / 2**30:.1f} GiB of device memory "
+            f"(this device holds {limit / 2**30:.1f} GiB): trained {k} at a time")
+    return k
+
+
 def train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | None = None):
     """Run the method's loop (ppo.py, sac.py, es.py: brax's epochs, the state checkpointed under
     RUN/<method>_state/ and resumed from there) on schedule(cfg); returns the final policy as

@@ -50,6 +50,7 @@ from brax.envs.base import Env, State, Wrapper  # noqa: E402
 from brax.envs.wrappers.training import EpisodeWrapper, VmapWrapper  # noqa: E402
 
 from training.baselines.config import RewardConfig  # noqa: E402
+from training.baselines.resumable import any_seed  # noqa: E402
 from ttmjx.world import env as task  # noqa: E402
 from ttmjx.world import thrower  # noqa: E402
 from ttmjx.world.config import World  # noqa: E402
@@ -148,7 +149,8 @@ def _episode_info(state: State, n: int) -> State:
 class FreshAutoReset(Wrapper):
     """brax's AutoResetWrapper, but a finished episode restarts from a NEW reset (throw, goal,
     home-pose noise) drawn from a key carried per environment, not from its first state again.
-    The restart is computed only when some environment finished (lax.cond).
+    The restart is computed only when some environment finished (lax.cond; of any seed when
+    the seeds are vmapped together, see any_seed).
 
     Throws come from a pool of `pool` per environment (info['throw_pool'] [n, pool, ...],
     info['throw_next'] [n]: the next unused one), solved in one batch at reset and again when an
@@ -187,15 +189,19 @@ class FreshAutoReset(Wrapper):
 
         def restart(_):
             done = state.done > 0
-            refill = lambda _: (self._solve(jax.random.fold_in(keys[0, 1], 3), n), jnp.zeros_like(nxt))  # noqa: E731
-            p, i = jax.lax.cond(jnp.any(done & (nxt >= self.pool)), refill, lambda _: (pool, nxt), None)
+            need = jnp.any(done & (nxt >= self.pool))
+
+            def refill(_):   # where(need, ...): a seed that needs none keeps its pool (any_seed)
+                fresh = self._solve(jax.random.fold_in(keys[0, 1], 3), n)
+                return jax.tree.map(lambda a, b: jnp.where(need, a, b), fresh, pool), jnp.where(need, 0, nxt)
+            p, i = jax.lax.cond(any_seed(need), refill, lambda _: (pool, nxt), None)
             th = jax.tree.map(lambda x: x[jnp.arange(n), jnp.minimum(i, self.pool - 1)], p)
             fresh = jax.vmap(self.goal_env.reset_with)(keys[:, 1], th)
             pick = lambda a, b: jnp.where(done.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
             return (jax.tree.map(pick, fresh.pipeline_state, state.pipeline_state),
                     jax.tree.map(pick, fresh.obs, state.obs), p, jnp.where(done, i + 1, i))
 
-        ps, obs, pool, nxt = jax.lax.cond(jnp.any(state.done > 0), restart,
+        ps, obs, pool, nxt = jax.lax.cond(any_seed(jnp.any(state.done > 0)), restart,
                                           lambda _: (state.pipeline_state, state.obs, pool, nxt), None)
         state.info.update(throw_pool=pool, throw_next=nxt)
         return state.replace(pipeline_state=ps, obs=obs)

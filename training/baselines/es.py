@@ -143,8 +143,8 @@ def schedule(cfg, num_timesteps: int, num_evals: int, seeds: bool = False) -> re
     """The loop (its epoch vmapped over stacked seeds if `seeds`) and brax's curve points: 0 when
     num_evals > 1, then eval_steps."""
     epoch = parts(cfg).epoch
-    loop = resumable.Loop(epoch=jax.jit(jax.vmap(epoch)) if seeds else epoch,
-                          steps=lambda s: resumable.first_int(s.num_env_steps, seeds),
+    epoch = resumable.over_seeds(epoch) if seeds else epoch
+    loop = resumable.Loop(epoch=epoch, steps=lambda s: resumable.first_int(s.num_env_steps, seeds),
                           acting=lambda s: (s.normalizer_params, s.policy_params),
-                          unit=2 * cfg.es.population_size * cfg.run.world.horizon)
+                          unit=2 * cfg.es.population_size * cfg.run.world.horizon, program=epoch)
     return resumable.Schedule(loop, eval_steps(num_timesteps, num_evals), num_evals > 1, cfg.es.checkpoint_every)

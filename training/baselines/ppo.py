@@ -157,7 +157,8 @@ def schedule(cfg, num_timesteps: int, num_evals: int, seeds: bool = False) -> re
     """The loop (its epoch vmapped over stacked seeds if `seeds`) and brax's curve points: 0 and
     after every epoch (its policy_params_fn)."""
     pt = parts(cfg, num_timesteps, num_evals)
-    loop = resumable.Loop(epoch=jax.jit(jax.vmap(pt.epoch)) if seeds else pt.epoch,
-                          steps=lambda s: resumable.first_int(s.training.env_steps, seeds),
-                          acting=lambda s: (s.training.normalizer_params, s.training.params.policy), unit=pt.unit)
+    epoch = resumable.over_seeds(pt.epoch) if seeds else pt.epoch
+    loop = resumable.Loop(epoch=epoch, steps=lambda s: resumable.first_int(s.training.env_steps, seeds),
+                          acting=lambda s: (s.training.normalizer_params, s.training.params.policy), unit=pt.unit,
+                          program=epoch)
     return resumable.Schedule(loop, [pt.unit * (i + 1) for i in range(max(num_evals - 1, 1))], True)

@@ -16,6 +16,28 @@ import jax.numpy as jnp
 from training import checkpoint
 
 
+# The vmapped axis of a seeds-together program (over_seeds).
+SEED_AXIS = "seeds"
+
+
+def any_seed(pred):
+    """pred (a bool [], one per seed under the seeds' vmap) -> whether it holds for some seed,
+    unbatched. A lax.cond whose predicate is batched by vmap becomes a select that runs BOTH
+    branches at every call (here a throw solve and a reset of every environment at every step);
+    with this predicate the branch runs only when some seed needs it, and the branch itself
+    must keep each seed's state unchanged where its own predicate is False. Outside the seeds'
+    vmap: pred itself."""
+    try:
+        return jax.lax.pmax(pred, SEED_AXIS)
+    except NameError:   # no seeds axis is bound
+        return pred
+
+
+def over_seeds(fn: Callable) -> Callable:
+    """fn on one seed's state -> jitted fn on the seeds' states stacked on a leading axis."""
+    return jax.jit(jax.vmap(fn, axis_name=SEED_AXIS))
+
+
 @dataclasses.dataclass(frozen=True)
 class Loop:
     """One method's epoch and how to read its state."""
@@ -23,6 +45,7 @@ class Loop:
     steps: Callable[[Any], int]                # environment steps run so far
     acting: Callable[[Any], tuple[Any, Any]]   # state -> (normalizer, policy params): a curve point
     unit: int                                  # environment steps per epoch
+    program: Callable | None = None            # seeds stacked: the jitted epoch whose memory bounds the seeds
 
 
 @dataclasses.dataclass(frozen=True)

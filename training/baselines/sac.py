@@ -67,6 +67,27 @@ def keys(seed: int):
     return global_key, rb_key, env_key, local_key
 
 
+def _seeds_queue(replay_buffers):
+    """brax 0.14.2's UniformSamplingQueue whose insert rolls the buffer under a predicate shared
+    by the seeds (resumable.any_seed): brax's lax.cond on the insert position would become a
+    select under the seeds' vmap, rolling every seed's whole buffer at every step. A seed whose
+    roll is 0 keeps its data as it is, so each seed inserts exactly as brax's queue does."""
+
+    class SeedsQueue(replay_buffers.UniformSamplingQueue):
+        def insert_internal(self, buffer_state, samples):
+            if buffer_state.data.shape != self._data_shape:
+                raise ValueError(f"replay buffer data shape {buffer_state.data.shape}; expected {self._data_shape}")
+            update = self._flatten_fn(samples)
+            data, position = buffer_state.data, buffer_state.insert_position
+            roll = jnp.minimum(0, len(data) - position - len(update))
+            data = jax.lax.cond(resumable.any_seed(roll != 0), lambda: jnp.roll(data, roll, axis=0), lambda: data)
+            position = position + roll
+            data = jax.lax.dynamic_update_slice_in_dim(data, update, position, axis=0)
+            return buffer_state.replace(data=data, insert_position=(position + len(update)) % (len(data) + 1),
+                                        sample_position=jnp.maximum(0, buffer_state.sample_position + roll))
+    return SeedsQueue
+
+
 @functools.lru_cache(maxsize=4)
 def _parts(cfg, num_timesteps: int, num_evals: int) -> Parts:
     from brax.training import acting, gradients, replay_buffers
@@ -90,8 +111,8 @@ def _parts(cfg, num_timesteps: int, num_evals: int) -> Parts:
     dummy_obs = jnp.zeros((obs_size,))
     dummy = Transition(observation=dummy_obs, action=jnp.zeros((action_size,)), reward=0.0, discount=0.0,
                        next_observation=dummy_obs, extras={"state_extras": {"truncation": 0.0}, "policy_extras": {}})
-    buffer = replay_buffers.UniformSamplingQueue(max_replay_size=s.max_replay_size, dummy_data_sample=dummy,
-                                                 sample_batch_size=s.batch_size * s.grad_updates_per_step)
+    buffer = _seeds_queue(replay_buffers)(max_replay_size=s.max_replay_size, dummy_data_sample=dummy,
+                                          sample_batch_size=s.batch_size * s.grad_updates_per_step)
     alpha_loss, critic_loss, actor_loss = sac_losses.make_losses(sac_network=network, reward_scaling=1.0,
                                                                  discounting=s.discounting, action_size=action_size)
     alpha_update = gradients.gradient_update_fn(alpha_loss, alpha_opt, pmap_axis_name=None)
@@ -195,7 +216,7 @@ def schedule(cfg, num_timesteps: int, num_evals: int, seeds: bool = False) -> re
     and first training epoch) and brax's curve points: 0 when num_evals > 1, then after every
     epoch, where brax's evaluator scores its policy."""
     pt = parts(cfg, num_timesteps, num_evals)
-    prefill, epoch = (jax.jit(jax.vmap(pt.prefill)), jax.jit(jax.vmap(pt.epoch))) if seeds else (pt.prefill, pt.epoch)
+    prefill, epoch = (resumable.over_seeds(pt.prefill), resumable.over_seeds(pt.epoch)) if seeds else (pt.prefill, pt.epoch)
 
     def steps(st):
         return resumable.first_int(st.training.env_steps, seeds)
@@ -203,6 +224,7 @@ def schedule(cfg, num_timesteps: int, num_evals: int, seeds: bool = False) -> re
     def first_prefilled(st):
         return epoch(prefill(st) if steps(st) == 0 else st)
     loop = resumable.Loop(epoch=first_prefilled, steps=steps,
-                          acting=lambda st: (st.training.normalizer_params, st.training.policy_params), unit=pt.unit)
+                          acting=lambda st: (st.training.normalizer_params, st.training.policy_params), unit=pt.unit,
+                          program=epoch)
     return resumable.Schedule(loop, [pt.prefill_steps + pt.unit * (i + 1) for i in range(max(num_evals - 1, 1))],
                               num_evals > 1)

@@ -126,8 +126,23 @@ IMPACT_CONTROL_STEPS = 4   # 40 ms: lead-in, the slowest (2 m/s) contact and the
 # than its older loop emitters: the fused body-tree chain is recomputed per output element
 # (measured on a 2-core AMD EPYC, jaxlib 0.10.2: one chunk of 128 throws x 40 physics steps 6.1 s
 # with them, 0.10 s without; the same physics, trajectories equal to float32 rounding). A
-# compile option of this program only; other backends ignore it.
+# compile option of this program only, on the CPU, where this XLA knows it (older and newer
+# jaxlibs name no such option: they compile without it).
 MJX_CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+
+@functools.lru_cache(maxsize=1)
+def _cpu_compiler_options() -> dict | None:
+    """MJX_CPU_COMPILER_OPTIONS if this process computes on a CPU whose XLA accepts them, else None."""
+    if jax.default_backend() != "cpu":
+        return None
+    try:
+        jax.jit(lambda x: x + 1, compiler_options=MJX_CPU_COMPILER_OPTIONS).lower(1.0).compile()
+    except jax.errors.JaxRuntimeError as e:
+        if "compile option" not in str(e):
+            raise
+        return None
+    return MJX_CPU_COMPILER_OPTIONS
 
 
 @functools.lru_cache(maxsize=4)
@@ -143,8 +158,7 @@ def _mjx_runner(physics):
         (qpos, qvel), (ball, paddle) = jax.lax.scan(body, (qpos, qvel), None, length=MJX_CHUNK)
         return qpos, qvel, ball.reshape(-1, 6), paddle.reshape(-1, 3)
 
-    cpu = jax.default_backend() == "cpu"
-    return jax.jit(jax.vmap(one), compiler_options=MJX_CPU_COMPILER_OPTIONS if cpu else None)
+    return jax.jit(jax.vmap(one), compiler_options=_cpu_compiler_options())
 
 
 def _mjx_trajectories(physics, qpos, qvel, n_control: int):
