@@ -260,12 +260,10 @@ def _method(name: str):
 
 
 def device_bytes_limit() -> int | None:
-    """The memory one program may use on JAX's first device; None on a CPU (host memory) or
-    where the device does not say."""
-    dev = jax.devices()[0]
-    if dev.platform == "cpu":
-        return None
-    return (dev.memory_stats() or {}).get("bytes_limit")
+    """The memory of the accelerator the seeds train on (training.budget.device_bytes); None on
+    a CPU, where all seeds train together in the host's memory."""
+    from training import budget
+    return None if jax.default_backend() == "cpu" else budget.device_bytes()
 
 
 def program_bytes(cfg: BaselineConfig, n: int) -> int:
