@@ -5,7 +5,7 @@
 # resume inside the lease; TESTS=1 also runs the README's test command on the host's CPU.
 #   LANES="0:es5:baseline+es+--seeds+5+--out+/tmp/lanes/bl 1:sac5:baseline+sac+--seeds+5+--out+/tmp/lanes/bl" \
 #     bash scripts/gpu_lanes.sh start WAIT_S      # first call: install, launch, then watch
-#   bash scripts/gpu_lanes.sh wait WAIT_S         # later calls: keep watching
+#   bash scripts/gpu_lanes.sh wait WAIT_S         # later calls: keep watching (the lanes started)
 # A lane spec is GPU:NAME:ARGS, ARGS the ttmjx command line with '+' for spaces; specs of one GPU
 # run in the order given. Each call leaves in $OUT: log.txt and lanes.tgz (every file under 2 MB
 # under /tmp/lanes but checkpoints and RL states; each job's log tail), refreshed every 30 s.
@@ -35,6 +35,7 @@ if [[ $mode == start ]]; then
   python3 -m pip install -q --no-deps --no-index .wheels/*.whl 2>&1 | grep -v -i warn | tail -2
   { nvidia-smi --query-gpu=index,name,memory.total --format=csv,noheader; nproc | sed 's/^/cpu cores: /'
     lscpu | grep -E "Model name"; } >> "$T/log.txt"
+  printf '%s\n' $LANES | cut -d: -f1 | sort -u | wc -l > "$T/lanes.n"; echo "$TESTS" > "$T/tests.n"
   for gpu in $(printf '%s\n' $LANES | cut -d: -f1 | sort -u); do
     specs=$(printf '%s\n' $LANES | grep "^$gpu:" | tr '\n' ' ')
     setsid bash -c "cd $PWD; source scripts/gpu_lanes.sh lib; lane $gpu $specs; touch $T/lane$gpu.done" \
@@ -51,7 +52,7 @@ if [[ $mode == start ]]; then
 fi
 [[ $mode == lib ]] && return 0
 wait_s=$1; t_end=$((SECONDS + wait_s))
-n_lanes=$(printf '%s\n' $LANES | cut -d: -f1 | sort -u | wc -l)
+n_lanes=$(cat "$T/lanes.n"); TESTS=$(cat "$T/tests.n")   # as started
 while (( SECONDS < t_end )); do
   pack
   n=$(ls "$T"/lane*.done "$T"/tests.done 2>/dev/null | wc -l)
