@@ -264,7 +264,8 @@ class BaselineArgs(Report):
     """The paper's Table I on this world: RL baselines through brax (ppo, sac, es), GCSL, LFP and
     GoalsEye at one trajectory budget, each (method, seed) a cell as in `ttmjx ablate`: a markdown
     table (mean +- 95% interval over seeds), learning curves, landing maps, JSON per cell. The seeds
-    of a method train together as one program. The same command skips finished cells and resumes
+    of a method train together as one program (RL seeds in groups, where all of them would not
+    fit the GPU's memory). The same command skips finished cells and resumes
     cut ones (RL cells from the state saved after every epoch)."""
     BOUNDS: ClassVar[dict] = {"seeds": (1, 1000), "trajectories": (1, None)}
     method: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="METHOD")]
