@@ -271,9 +271,10 @@ def program_bytes(cfg: BaselineConfig, n: int) -> int:
     arguments, outputs and temporaries), compiled here without running."""
     sched = schedule(cfg)
     method = _method(cfg.method)
+    # the method's parts are built (and cached) here, outside eval_shape's trace, never inside it
+    program = method.schedule(cfg, sched.num_timesteps, sched.num_evals, seeds=True).loop.program
     one = jax.eval_shape(lambda: method.initial_state(cfg, sched.num_timesteps, sched.num_evals))
     stacked = jax.tree.map(lambda x: jax.ShapeDtypeStruct((n,) + x.shape, x.dtype), one)
-    program = method.schedule(cfg, sched.num_timesteps, sched.num_evals, seeds=True).loop.program
     m = program.lower(stacked).compile().memory_analysis()
     return int(m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes)
 
