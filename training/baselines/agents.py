@@ -266,16 +266,21 @@ def device_bytes_limit() -> int | None:
     return None if jax.default_backend() == "cpu" else budget.device_bytes()
 
 
-def program_bytes(cfg: BaselineConfig, n: int) -> int:
-    """Device memory of the method's epoch for n seeds stacked (XLA's compiled memory analysis:
-    arguments, outputs and temporaries), compiled here without running."""
+def program_memory(cfg: BaselineConfig, n: int):
+    """XLA's compiled memory analysis of the method's epoch for n seeds stacked (compiled here,
+    not run): its argument_, output_ and temp_size_in_bytes."""
     sched = schedule(cfg)
     method = _method(cfg.method)
     # the method's parts are built (and cached) here, outside eval_shape's trace, never inside it
     program = method.schedule(cfg, sched.num_timesteps, sched.num_evals, seeds=True).loop.program
     one = jax.eval_shape(lambda: method.initial_state(cfg, sched.num_timesteps, sched.num_evals))
     stacked = jax.tree.map(lambda x: jax.ShapeDtypeStruct((n,) + x.shape, x.dtype), one)
-    m = program.lower(stacked).compile().memory_analysis()
+    return program.lower(stacked).compile().memory_analysis()
+
+
+def program_bytes(cfg: BaselineConfig, n: int) -> int:
+    """Device memory of the method's epoch for n seeds stacked: arguments, outputs, temporaries."""
+    m = program_memory(cfg, n)
     return int(m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes)
 
 
