@@ -130,9 +130,25 @@ def rl_seeds(cfgs: list, progress: bool = True) -> list[cellrun.Outcome]:
     batched rollout per seed (`curve_metrics`): one episode's latency instead of one per point.
     Where the time went is written to RUN/timing.json (brax's epochs, the curve, the save, the
     final evaluation). Seeds whose stacked epoch would not fit in the device's memory train in
-    groups that do (agents.seeds_per_program), one group after another."""
-    k = agents.seeds_per_program(cfgs[0], len(cfgs), log=lambda m: log(f"[baseline] {m}", file=sys.stderr))
-    return [o for i in range(0, len(cfgs), k) for o in _rl_program(cfgs[i:i + k], progress)]
+    groups that do (agents.seeds_per_program), one group after another. XLA's estimate is not
+    the allocator's word: a group that still runs out of device memory is split in halves and
+    run again (a group's state is saved only after its first epoch, which is where it fails)."""
+    say = lambda m: log(f"[baseline] {m}", file=sys.stderr)  # noqa: E731
+    k = agents.seeds_per_program(cfgs[0], len(cfgs), log=say)
+    outcomes, i = [], 0
+    while i < len(cfgs):
+        group = cfgs[i:i + k]
+        try:
+            outcomes += _rl_program(group, progress)
+        except Exception as err:  # noqa: BLE001 (only an allocator's refusal is retried)
+            if len(group) == 1 or not agents.out_of_memory(err):
+                raise
+            k = (len(group) + 1) // 2
+            say(f"{cfgs[0].method}: {len(group)} seeds as one program ran out of device memory "
+                f"({str(err).splitlines()[0][:160]}): trained {k} at a time")
+            continue
+        i += len(group)
+    return outcomes
 
 
 def _rl_program(cfgs: list, progress: bool) -> list[cellrun.Outcome]:

@@ -16,7 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 ARMS = {"goalseye": "GoalsEye (3,600 demonstrations)", "d1000": "1,000 demonstrations",
-        "d100": "100 demonstrations", "lfp-equal-updates": "LFP (3,600, no practice)"}
+        "d100": "100 demonstrations", "d10": "10 demonstrations", "lfp-equal-updates": "LFP (3,600, no practice)"}
 
 
 def runs_of(root: str, arm: str) -> list[list[dict]]:

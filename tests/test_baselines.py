@@ -358,6 +358,32 @@ def test_seeds_that_do_not_fit_the_device_train_in_groups_that_do(monkeypatch):
     assert baselines.rl_seeds([cfg] * 5) == [cfg] * 5 and programs == [2, 2, 1]
 
 
+def test_a_group_the_allocator_refuses_trains_in_halves(monkeypatch, capsys):
+    """XLA's memory analysis can say a group fits where the allocator then refuses it (5 ES
+    seeds on an H200): the group is split in halves and run again, with one line saying so; any
+    other error, or a refusal of a single seed, is raised as it is."""
+    cfg = baselines.method_config("es", "tiny", 0, "/tmp/fit", trajectories=4)
+    refusal = jax.errors.JaxRuntimeError(
+        "RESOURCE_EXHAUSTED: Out of memory while trying to allocate 67.38GiB with allocator GPU_0_bfc")
+    programs = []
+
+    def program(cfgs, progress):
+        programs.append(len(cfgs))
+        if len(cfgs) > 2:
+            raise refusal
+        return cfgs
+
+    monkeypatch.setattr(agents, "seeds_per_program", lambda c, n, log=None: n)
+    monkeypatch.setattr(baselines, "_rl_program", program)
+    assert baselines.rl_seeds([cfg] * 5) == [cfg] * 5
+    assert programs == [5, 3, 2, 2, 1]
+    assert "5 seeds as one program ran out of device memory" in capsys.readouterr().err
+    assert agents.out_of_memory(refusal) and not agents.out_of_memory(ValueError("RESOURCE_EXHAUSTED"))
+    monkeypatch.setattr(baselines, "_rl_program", lambda cfgs, progress: (_ for _ in ()).throw(refusal))
+    with pytest.raises(jax.errors.JaxRuntimeError):
+        baselines.rl_seeds([cfg])
+
+
 def test_sac_q_networks_are_the_policy_size():
     """brax's make_sac_networks has one hidden size for both networks: no q_hidden to ignore."""
     assert "q_hidden" not in {f.name for f in dataclasses.fields(agents.SACConfig)}

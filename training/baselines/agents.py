@@ -301,6 +301,11 @@ def seeds_per_program(cfg: BaselineConfig, n: int, log=None) -> int:
     return k
 
 
+def out_of_memory(err: BaseException) -> bool:
+    """Whether err is XLA's refusal to allocate device memory (RESOURCE_EXHAUSTED)."""
+    return isinstance(err, jax.errors.JaxRuntimeError) and "RESOURCE_EXHAUSTED" in str(err)
+
+
 def train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | None = None):
     """Run the method's loop (ppo.py, sac.py, es.py: brax's epochs, the state checkpointed under
     RUN/<method>_state/ and resumed from there) on schedule(cfg); returns the final policy as
