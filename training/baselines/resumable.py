@@ -138,6 +138,13 @@ def run(sched: Schedule, directory: str, cfg_json: dict, fresh: Callable[[], Any
                      timing, stacked=False)
 
 
+def strongly_typed(tree):
+    """tree with every leaf a strongly typed array: a fresh state's Python floats are weakly
+    typed, the epoch's outputs are not, so without this the epoch compiles twice (once for the
+    fresh state, once for its own output), as a restored state's epoch does not."""
+    return jax.tree.map(lambda x: jax.lax.convert_element_type(x, jnp.result_type(x)), tree)
+
+
 def run_seeds(sched: Schedule, directories: list[str], cfg_jsons: list[dict], fresh: list[Callable[[], Any]],
               num_timesteps: int, point, progress=None, timing: dict | None = None, stacked: bool = True):
     """Epochs of sched.loop from the newest checkpoint every seed's directory holds (or from
@@ -162,7 +169,7 @@ def run_seeds(sched: Schedule, directories: list[str], cfg_jsons: list[dict], fr
         stack, seed = (lambda xs: xs[0]), (lambda t, i: t)
     like = jax.eval_shape(fresh[0])
     found = resume_seeds(directories, like, jax.eval_shape(loop.acting, like), cfg_jsons)
-    states, points = found if found else ([f() for f in fresh], [[] for _ in range(n)])
+    states, points = found if found else ([strongly_typed(f()) for f in fresh], [[] for _ in range(n)])
     state = stack(states)
 
     def save_all(steps):
