@@ -11,7 +11,11 @@
 # under /tmp/lanes but checkpoints and RL states; each job's log tail), refreshed every 30 s.
 # Give WAIT_S at least 40 s under the call's limit.
 set -uo pipefail
-export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+# JAX's default allocator (preallocating 75% of the GPU as one pool): a lane has its GPU alone.
+# With XLA_PYTHON_CLIENT_PREALLOCATE=false the pool grows in regions that are never given back,
+# and one large buffer (ES's 5-seed epoch: 67 GiB) may find no region it fits (likely cause of
+# that OOM on an H200, not verified).
+export PYTHONPATH=$PWD PYTHONUNBUFFERED=1
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"; T=/tmp/lanes; mkdir -p "$T"; TESTS=${TESTS:-0}
 pack() {
   for f in "$T"/*.log; do [[ -f $f ]] && tail -c 60000 "$f" > "$f.tail"; done
