@@ -132,7 +132,7 @@ def rl_seeds(cfgs: list, progress: bool = True) -> list[cellrun.Outcome]:
     final evaluation). Seeds whose stacked epoch would not fit in the device's memory train in
     groups that do (agents.seeds_per_program), one group after another. XLA's estimate is not
     the allocator's word: a group that still runs out of device memory is split in halves and
-    run again (a group's state is saved only after its first epoch, which is where it fails)."""
+    run again (each seed's state is saved on its own at step 0, so the halves resume from it)."""
     say = lambda m: log(f"[baseline] {m}", file=sys.stderr)  # noqa: E731
     k = agents.seeds_per_program(cfgs[0], len(cfgs), log=say)
     outcomes, i = [], 0
