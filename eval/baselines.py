@@ -133,7 +133,9 @@ def rl_seeds(cfgs: list, progress: bool = True) -> list[cellrun.Outcome]:
     groups that do (agents.seeds_per_program), one group after another. XLA's estimate is not
     the allocator's word: a group that still runs out of device memory is split in halves and
     run again (each seed's state is saved on its own at step 0, so the halves resume from it)."""
-    say = lambda m: log(f"[baseline] {m}", file=sys.stderr)  # noqa: E731
+    def say(message: str) -> None:
+        log(f"[baseline] {message}", file=sys.stderr)
+
     k = agents.seeds_per_program(cfgs[0], len(cfgs), log=say)
     outcomes, i = [], 0
     while i < len(cfgs):
