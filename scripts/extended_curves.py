@@ -2,8 +2,11 @@
 200 uniform goals, from each cell's results/<method>-seed*.json) beside GoalsEye's held-out
 evaluation during training (paper bootstrap, 5 seeds, from a Table I run's metrics.jsonl).
 
-    python3 scripts/extended_curves.py docs/results/baselines/extended-h200 \
-        docs/results/table1-120k-paper docs/img/extended-curves.png
+    python3 scripts/extended_curves.py docs/img/extended-curves.png docs/results/table1-120k-paper \
+        docs/results/baselines/extended-h200 docs/results/baselines/table1-h100
+
+Each RL directory is searched for results/<method>-seed*.json in it and one level below; every
+(directory, method) pair found is one band.
 """
 import glob
 import json
@@ -23,25 +26,29 @@ LABELS = {"ppo": "PPO (brax, no demonstrations)", "es": "ES (brax, no demonstrat
 
 
 def rl_curves(root: str, method: str, key: str) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(trajectories, % of `key`) of each seed of `method` under root/*/results/."""
+    """(trajectories, % of `key`) of each seed of `method` under root/results/ or root/*/results/."""
     out = []
-    for p in sorted(glob.glob(os.path.join(root, "*", "results", f"{method}-seed*.json"))):
+    paths = [p for d in ("", "*") for p in glob.glob(os.path.join(root, d, "results", f"{method}-seed*.json"))]
+    for p in sorted(paths):
         curve = json.load(open(p))["curve"]
         out.append((np.array([c["trajectories"] for c in curve], float),
                     np.array([c[key] for c in curve], float) * 100))
     return out
 
 
-def main(rl_root: str, table_root: str, out: str) -> None:
+def main(out: str, table_root: str, *rl_roots: str) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     runs = runs_of(table_root, "goalseye")
     for ax, key, what in zip(axes, ("within_30cm", "hit_rate"), ("within 30 cm", "balls hit")):
         band(ax, [series(r, f"eval_{key}", "trajectories") for r in runs],
              label=f"GoalsEye (paper bootstrap, 3,600 demonstrations), {len(runs)} seeds")
-        for method, label in LABELS.items():
-            curves = rl_curves(rl_root, method, key)
-            if curves:
-                band(ax, curves, marker="o", ms=3, label=f"{label}, {len(curves)} seed{'s' * (len(curves) > 1)}")
+        for rl_root in rl_roots:
+            for method, label in LABELS.items():
+                curves = rl_curves(rl_root, method, key)
+                if curves:
+                    top = max(int(x[-1]) for x, _ in curves)
+                    band(ax, curves, marker="o", ms=3,
+                         label=f"{label}, {len(curves)} seed{'s' * (len(curves) > 1)} to {top // 1000}k")
         ax.set(xlabel="trajectories", ylabel=f"% {what} (strict metric, 200 goals)",
                title=f"{what} (mean, band: min-max of seeds)")
         ax.grid(alpha=0.3)
@@ -54,4 +61,6 @@ def main(rl_root: str, table_root: str, out: str) -> None:
 
 
 if __name__ == "__main__":
-    main(*sys.argv[1:4])
+    if len(sys.argv) < 4:
+        sys.exit("usage: extended_curves.py OUT.png TABLE_I_DIR RL_DIR [RL_DIR ...]")
+    main(*sys.argv[1:])
