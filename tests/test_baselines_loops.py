@@ -130,17 +130,21 @@ def test_the_resumable_loop_is_brax_train(method, tmp_path, monkeypatch, caplog)
 
 
 @pytest.mark.parametrize("method", RESUMABLE)
-def test_a_stopped_run_resumes_to_the_uninterrupted_result(method, tmp_path, monkeypatch):
+def test_a_stopped_run_resumes_to_the_uninterrupted_result(method, tmp_path, monkeypatch, caplog):
     """Stopped right after its first epoch's checkpoint, the same call resumes from it (one epoch
     left to run, the earlier curve points given back) and ends bit-for-bit where the
-    uninterrupted run ends, curve included; a checkpoint of other settings is refused, naming
-    what differs."""
+    uninterrupted run ends, curve included, with the epoch the uninterrupted run compiled (a
+    restored state placed as a fresh one: resumable.uncommitted); a checkpoint of other settings
+    is refused, naming what differs."""
     from training.baselines import resumable
     whole, whole_points, _ = rl_run(tmp_path, method, "whole")
-    with pytest.raises(KeyboardInterrupt):
-        rl_run(tmp_path, method, "cut", stop_after=whole_points[1][0], monkeypatch=monkeypatch)
-    monkeypatch.undo()
-    resumed, points, timing = rl_run(tmp_path, method, "cut")
+    with caplog.at_level(logging.DEBUG, logger="jax._src.interpreters.pxla"):
+        with pytest.raises(KeyboardInterrupt):
+            rl_run(tmp_path, method, "cut", stop_after=whole_points[1][0], monkeypatch=monkeypatch)
+        monkeypatch.undo()
+        resumed, points, timing = rl_run(tmp_path, method, "cut")
+    lowered = [r.getMessage()[:200] for r in caplog.records if r.getMessage().startswith("Compiling jit(epoch) ")]
+    assert lowered == [], lowered
     assert [s for s, _ in points] == [s for s, _ in whole_points] and len(timing["epochs"]) == 1
     for a, b in zip(jax.tree.leaves((resumed, points)), jax.tree.leaves((whole, whole_points)), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -12,6 +12,7 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from training import checkpoint
 
@@ -109,6 +110,7 @@ def resume(directory: str, like, like_point, cfg_json: dict, step: int | None = 
         raise ValueError(f"{directory} holds a state of another configuration (differs in {', '.join(diff)}); "
                          f"run with the same settings to resume it, or another --out")
     tree, _ = checkpoint.restore(directory, _tree(like, [(0, *like_point)] * n), step)
+    tree = uncommitted(tree)
     points = [(int(tree["points"][str(i)]["steps"]), tree["points"][str(i)]["normalizer"],
                tree["points"][str(i)]["policy"]) for i in range(n)]
     return tree["state"], points
@@ -136,6 +138,18 @@ def run(sched: Schedule, directory: str, cfg_json: dict, fresh: Callable[[], Any
     point(steps, normalizer, policy). Returns the final state."""
     return run_seeds(sched, [directory], [cfg_json], [fresh], num_timesteps, lambda _, *a: point(*a), progress,
                      timing, stacked=False)
+
+
+def uncommitted(tree):
+    """tree with every leaf an array placed as a freshly computed one is (not committed to a
+    device). Orbax restores committed arrays, and jit keys its compiled programs on that too:
+    without this a resumed state compiles the epoch again in a process that has compiled it for a
+    fresh state (a group of seeds retried in halves, a test), and misses JAX's persistent cache."""
+    def one(x):
+        if jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
+            return jax.random.wrap_key_data(jnp.asarray(np.asarray(jax.random.key_data(x))), impl=jax.random.key_impl(x))
+        return jnp.asarray(np.asarray(x))
+    return jax.tree.map(one, tree)
 
 
 def strongly_typed(tree):
