@@ -155,7 +155,7 @@ def test_a_stopped_run_resumes_to_the_uninterrupted_result(method, tmp_path, mon
 
 
 @pytest.mark.parametrize("method", RESUMABLE)
-def test_seeds_trained_together_are_each_seed_alone(method, tmp_path, monkeypatch):
+def test_seeds_trained_together_are_each_seed_alone(method, tmp_path, monkeypatch, caplog):
     """Seeds 0 and 1 as one program (states stacked, the epoch vmapped) end where each ends
     alone, within float32 reduction order: vmapped matrix products sum in another order. ES as
     configured (measured: 2e-4 relative at most after its 2 updates); PPO and SAC at learning
@@ -166,7 +166,7 @@ def test_seeds_trained_together_are_each_seed_alone(method, tmp_path, monkeypatc
     compared in every layer after the first, exactly (learning rate 0: each seed's initial
     weights, from its own keys), in the curve's steps and in the policy at 0, exactly. A stop between the two
     seeds' saves of the first epoch leaves seed 0 one checkpoint ahead: the same call resumes
-    both from the step they share."""
+    both from the step they share, with the programs the stopped call compiled."""
     from training.baselines import resumable
 
     def cfg(seed, name):
@@ -189,8 +189,12 @@ def test_seeds_trained_together_are_each_seed_alone(method, tmp_path, monkeypatc
     assert resumable.good_steps(resumable.state_dir(cfgs[0].run.run_dir, method))[-1] == first[0]
     assert resumable.good_steps(resumable.state_dir(cfgs[1].run.run_dir, method)) == [0]
     timing = {}
-    together = agents.train_seeds(cfgs, lambda i, step, p: seen[i].append((step, p)), timing=timing)
+    with caplog.at_level(logging.DEBUG, logger="jax._src.interpreters.pxla"):
+        together = agents.train_seeds(cfgs, lambda i, step, p: seen[i].append((step, p)), timing=timing)
     assert len(timing["epochs"]) == 2     # both resumed from step 0, the step they share
+    again = [r.getMessage()[:120] for r in caplog.records if r.getMessage().startswith(("Compiling jit(epoch) ",
+                                                                                           "Compiling jit(prefill) "))]
+    assert again == [], again             # the resumed seeds run the programs the stopped call compiled
     assert [[st for st, _ in x] for x in seen] == [[st for st, _ in x] for x in seen_alone]
     for a, b in zip(jax.tree.leaves([x[0] for x in seen]), jax.tree.leaves([x[0] for x in seen_alone]), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

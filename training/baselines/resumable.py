@@ -6,6 +6,7 @@ stopped and ends bit-for-bit where the uninterrupted cell ends."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import time
 from typing import Any, Callable
@@ -34,8 +35,11 @@ def any_seed(pred):
         return pred
 
 
+@functools.lru_cache(maxsize=16)
 def over_seeds(fn: Callable) -> Callable:
-    """fn on one seed's state -> jitted fn on the seeds' states stacked on a leading axis."""
+    """fn on one seed's state -> jitted fn on the seeds' states stacked on a leading axis. One per
+    fn (the methods' parts are cached per configuration), so that a later call of the same seeds
+    (a resumed group) finds its program compiled."""
     return jax.jit(jax.vmap(fn, axis_name=SEED_AXIS))
 
 
