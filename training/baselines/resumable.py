@@ -148,12 +148,9 @@ def uncommitted(tree):
     """tree with every leaf an array placed as a freshly computed one is (not committed to a
     device). Orbax restores committed arrays, and jit keys its compiled programs on that too:
     without this a resumed state compiles the epoch again in a process that has compiled it for a
-    fresh state (a group of seeds retried in halves, a test), and misses JAX's persistent cache."""
-    def one(x):
-        if jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
-            return jax.random.wrap_key_data(jnp.asarray(np.asarray(jax.random.key_data(x))), impl=jax.random.key_impl(x))
-        return jnp.asarray(np.asarray(x))
-    return jax.tree.map(one, tree)
+    fresh state (a group of seeds retried in halves, a test), and misses JAX's persistent cache.
+    The states hold brax's raw uint32 keys, no typed keys. A host copy: done once per resume."""
+    return jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), tree)
 
 
 def strongly_typed(tree):
