@@ -15,8 +15,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-ARMS = {"goalseye": "GoalsEye (3,600 demonstrations)", "d1000": "1,000 demonstrations",
-        "d100": "100 demonstrations", "d10": "10 demonstrations", "lfp-equal-updates": "LFP (3,600, no practice)"}
+ARMS = {"goalseye": "GoalsEye (3,600 demonstrations)", "r0.2": "GoalsEye, 0.2 updates per practice trajectory",
+        "d1000": "1,000 demonstrations", "d100": "100 demonstrations", "d10": "10 demonstrations",
+        "lfp-equal-updates": "LFP (3,600, no practice)", "lfp-equal-data": "LFP (120,000, no practice)"}
 
 
 def runs_of(root: str, arm: str) -> list[list[dict]]:
@@ -33,6 +34,10 @@ def band(ax, curves: list[tuple[np.ndarray, np.ndarray]], xs: np.ndarray | None 
     """Mean over seeds as a line, min-max as a band, over the points every seed has; its line."""
     n = min(len(c[0]) for c in curves)
     ys = np.stack([c[1][:n] for c in curves])
+    if n == 1:   # evaluated once, at the end (LFP at equal data): a point with the seeds' range
+        x, m = curves[0][0][:1], ys.mean(0)
+        bars = ax.errorbar(x, m, yerr=[m - ys.min(0), ys.max(0) - m], fmt="o", capsize=4, **kw)
+        return bars.lines[0]
     xs = curves[0][0][:n] if xs is None else xs[:n]
     line, = ax.plot(xs, ys.mean(0), **kw)
     ax.fill_between(xs, ys.min(0), ys.max(0), color=line.get_color(), alpha=0.2)
@@ -47,7 +52,7 @@ def main(root: str, out: str) -> None:
         if not runs:
             continue
         # LFP's data is fixed: its points are drawn at GoalsEye's trajectories of the same update count
-        xs = goalseye_x if arm.startswith("lfp") else None
+        xs = goalseye_x if arm.startswith("lfp") else None   # (one evaluation: drawn at its own x)
         line = band(ax_eval, [series(r, "eval_within_30cm", "trajectories") for r in runs], xs,
                     label=f"{label}, {len(runs)} seeds")
         good = [series(r, "practice_within_30cm", "trajectories") for r in runs]
