@@ -12,7 +12,7 @@ import numpy as np
 
 from ttmjx.world import files
 from ttmjx.world.config import Table
-from ttmjx.world.goals import RADII
+from ttmjx.world.goals import RADII, landed_mean_distance
 
 # Two-sided 95% quantiles of Student's t (t_{0.975, df}); beyond the table the next lower
 # df is used, which widens the interval slightly (conservative).
@@ -22,7 +22,8 @@ T975 = {1: 12.7062, 2: 4.3027, 3: 3.1824, 4: 2.7764, 5: 2.5706, 6: 2.4469, 7: 2.
         120: 1.9799}
 
 # (metric key, column title, scale for display, digits): percentages for rates, metres for distance.
-COLUMNS = (("mean_dist", "mean distance (m)", 1.0, 2), ("within_30cm", "<= 30 cm (%)", 100.0, 1),
+COLUMNS = (("mean_dist", "mean distance (m)", 1.0, 2),
+           ("mean_dist_landed", "distance, every landing (m)", 1.0, 2), ("within_30cm", "<= 30 cm (%)", 100.0, 1),
            ("within_20cm", "<= 20 cm (%)", 100.0, 1), ("hit_rate", "hit rate (%)", 100.0, 1),
            ("on_table_rate", "on table (%)", 100.0, 1))
 
@@ -40,6 +41,16 @@ def interval(values) -> dict:
     return {"mean": float(np.mean(v)), "half": half, "n": int(len(v))}
 
 
+def final_metrics(result: dict) -> dict:
+    """A cell's final metrics; mean_dist_landed recomputed from its landings where the result
+    predates that metric."""
+    final, lands = result["final"], result.get("landings")
+    if "mean_dist_landed" in final or not lands:
+        return final
+    landing = np.array([[np.nan if v is None else v for v in p] for p in lands["landing"]], np.float64)
+    return {**final, "mean_dist_landed": landed_mean_distance(landing, lands["goal"], lands["hit"])}
+
+
 def summarize(results: list[dict], variants: list[str], header: dict) -> dict:
     """The JSON summary: per variant (in `variants` order, then any others found) its seeds and,
     per metric, the interval over seeds."""
@@ -47,10 +58,11 @@ def summarize(results: list[dict], variants: list[str], header: dict) -> dict:
     out = []
     for v in names:
         mine = sorted((r for r in results if r["variant"] == v), key=lambda r: r["seed"])
-        keys = [k for k, *_ in COLUMNS if any(k in r["final"] for r in mine)]
+        finals = [final_metrics(r) for r in mine]
+        keys = [k for k, *_ in COLUMNS if any(k in f for f in finals)]
         out.append({"variant": v, "seeds": [r["seed"] for r in mine],
-                    "metrics": {k: {**interval([r["final"].get(k) for r in mine]),
-                                    "values": [r["final"].get(k) for r in mine]} for k in keys},
+                    "metrics": {k: {**interval([f.get(k) for f in finals]),
+                                    "values": [f.get(k) for f in finals]} for k in keys},
                     "wall_s": [r["wall_s"] for r in mine]})
     return {**header, "variants": out}
 

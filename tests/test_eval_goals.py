@@ -42,9 +42,26 @@ def test_a_success_is_a_first_bounce_on_the_opponents_half_near_the_goal():
     assert m["within_30cm"] == pytest.approx(2 / 6) and m["within_20cm"] == pytest.approx(1 / 6)
     assert m["hit_rate"] == pytest.approx(5 / 6) and m["on_table_rate"] == pytest.approx(2 / 6)
     assert m["mean_dist"] == pytest.approx(0.125)      # over the two on-table landings only
+    # the paper's distance to goal: every hit ball that came down, on the table or beside it
+    # (0, 0.15 beyond the end line, 0.20 on the robot's half, 0.25); the unhit and the
+    # never-landed count in neither distance
+    assert m["mean_dist_landed"] == pytest.approx((0 + 0.15 + 0.20 + 0.25) / 4)
     assert m["goals"] == 6
     jm = goal_stats(*(jnp.asarray(x) for x in strict_case()), xp=jnp)   # the jitted practice path
-    assert {k: float(v) for k, v in jm.items()} == pytest.approx({k: v for k, v in m.items() if k != "goals"})
+    assert {k: float(v) for k, v in jm.items()} == pytest.approx(
+        {k: v for k, v in m.items() if k not in ("goals", "mean_dist_landed")})
+
+
+def test_final_metrics_of_an_older_result_recompute_the_landed_distance_from_its_landings():
+    from eval import tables
+    landing, goal, hit, on_opponent = strict_case()
+    m = goal_metrics(landing, goal, hit, on_opponent)
+    old = {k: v for k, v in m.items() if k != "mean_dist_landed"}     # a result written before the metric
+    lands = {"goal": goal.tolist(), "landing": [[None if np.isnan(v) else v for v in p] for p in landing.tolist()],
+             "hit": hit.tolist(), "on_opponent": on_opponent.tolist()}
+    got = tables.final_metrics({"final": old, "landings": lands})
+    assert got == pytest.approx(m, nan_ok=True)
+    assert tables.final_metrics({"final": m, "landings": None}) is m
 
 
 def test_no_on_table_landing_gives_zero_success_and_no_mean_distance():

@@ -87,7 +87,7 @@ def goal_summary(episodes: list[Episode]) -> dict:
     on the opponent's half (zeros, mean_dist NaN, without episodes)."""
     if not episodes:
         return {"within_30cm": 0.0, "within_20cm": 0.0, "mean_dist": math.nan, "hit_rate": 0.0,
-                "on_table_rate": 0.0, "goals": 0, "on_opponent": 0.0}
+                "on_table_rate": 0.0, "mean_dist_landed": math.nan, "goals": 0, "on_opponent": 0.0}
     tr = record.concat([e.traj for e in episodes])
     return {**goal_metrics(tr.landing, tr.goal, tr.hit, tr.on_opponent), "on_opponent": float(np.mean(tr.on_opponent))}
 

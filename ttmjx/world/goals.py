@@ -11,6 +11,8 @@ ttmjx.world.env.uniform_goals.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ttmjx.world.config import Table
@@ -78,8 +80,19 @@ def goal_stats(landing, goal, hit, on_opponent, xp=np, counted=None) -> dict:
             "mean_dist": mean_dist, "hit_rate": share(xp.asarray(hit, bool)), "on_table_rate": share(ok)}
 
 
+def landed_mean_distance(landing, goal, hit) -> float:
+    """Mean distance (m) from the goal [B, 2] over every hit ball that came down, wherever its
+    landing [B, 2] is (either half, or where it fell through table height beside the table):
+    the paper's "distance to goal", which also counts the balls that miss the table. NaN if no
+    hit ball came down."""
+    d = np.linalg.norm(np.asarray(landing, np.float64) - np.asarray(goal, np.float64), axis=-1)
+    ok = np.asarray(hit, bool) & np.isfinite(d)
+    return float(d[ok].mean()) if ok.any() else math.nan
+
+
 def goal_metrics(landing, goal, hit, on_opponent) -> dict:
-    """goal_stats of B attempts as Python floats (float64 arithmetic), plus the goal count."""
+    """goal_stats of B attempts as Python floats (float64 arithmetic), plus mean_dist_landed
+    (landed_mean_distance) and the goal count."""
     landing, goal = np.asarray(landing, np.float64), np.asarray(goal, np.float64)
     hit, on_opponent = np.asarray(hit, bool), np.asarray(on_opponent, bool)
     if landing.shape != goal.shape or landing.ndim != 2 or landing.shape[1] != 2:
@@ -88,7 +101,8 @@ def goal_metrics(landing, goal, hit, on_opponent) -> dict:
         if x.shape != (len(goal),):
             raise ValueError(f"{name} has shape {x.shape}, expected ({len(goal)},)")
     stats = goal_stats(landing, goal, hit, on_opponent)
-    return {**{k: float(v) for k, v in stats.items()}, "goals": int(len(goal))}
+    return {**{k: float(v) for k, v in stats.items()},
+            "mean_dist_landed": landed_mean_distance(landing, goal, hit), "goals": int(len(goal))}
 
 
 def per_goal_metrics(landing, goal, hit, on_opponent, names: list[str]) -> dict:
