@@ -7,7 +7,8 @@
 #     bash scripts/gpu_lanes.sh start WAIT_S      # first call: install, launch, then watch
 #   bash scripts/gpu_lanes.sh wait WAIT_S         # later calls: keep watching (the lanes started)
 # A lane spec is GPU:NAME:ARGS, ARGS the ttmjx command line with '+' for spaces; specs of one GPU
-# run in the order given. Each call leaves in $OUT: log.txt and lanes.tgz (every file under 2 MB
+# run in the order given. After an `ablate` spec with --out, its finished cells are evaluated on
+# eval/goals/edges_net.csv into edges/ (scripts/table1_figures.py reads them). Each call leaves in $OUT: log.txt and lanes.tgz (every file under 2 MB
 # under /tmp/lanes but checkpoints and RL states; each job's log tail), refreshed every 30 s.
 # Give WAIT_S at least 40 s under the call's limit.
 set -uo pipefail
@@ -32,7 +33,22 @@ lane() {   # lane GPU SPEC...: the specs one after another on that GPU
     CUDA_VISIBLE_DEVICES=$gpu TTMJX_JAX_CACHE=/tmp/jaxcache$gpu /usr/bin/time -f "$name wall %e s, peak rss %M kB" \
       python3 -m ttmjx.cli ${args//+/ } 2>&1 | stdbuf -oL tr '\r' '\n' | grep --line-buffered -v '^\s*$' > "$T/$name.log"
     echo "=== $name ended $(date +%T): $(grep -E 'wall|rror' "$T/$name.log" | tail -2 | tr '\n' ' ')" >> "$T/log.txt"
+    [[ $args == ablate+* ]] && edges "$gpu" "$name" "$args"
   done
+}
+edges() {   # edges GPU NAME ARGS: each finished cell of an ablation lane on the edges-and-net goals,
+  # while its checkpoint is on this machine (it does not come back): $T/edges/ABLATION-CELL.json
+  local gpu=$1 name=$2 args=$3 abl out run c
+  abl=$(cut -d+ -f2 <<< "$args"); out=$(grep -o -- '--out+[^+]*' <<< "$args" | cut -d+ -f2)
+  [[ -n $out && -d $out/runs ]] || return 0
+  mkdir -p "$T/edges"
+  for run in "$out"/runs/*; do
+    c=$(basename "$run")
+    [[ -f $out/results/$c.json && ! -s $T/edges/$abl-$c.json ]] || continue
+    CUDA_VISIBLE_DEVICES=$gpu TTMJX_JAX_CACHE=/tmp/jaxcache$gpu python3 -m ttmjx.cli eval "$run" \
+      --goals eval/goals/edges_net.csv --json 2>>"$T/$name.log" | tail -1 > "$T/edges/$abl-$c.json"
+  done
+  echo "=== $name: edges-and-net evaluations $(date +%T): $(ls "$T/edges" | grep -c "^$abl-")" >> "$T/log.txt"
 }
 mode=$1; shift
 if [[ $mode == start ]]; then
