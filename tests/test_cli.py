@@ -225,3 +225,26 @@ def test_importing_mjx_and_brax_is_quiet_unless_asked():
     verbose = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                              env=dict(os.environ, TTMJX_VERBOSE="1"))
     assert verbose.returncode == 0 and "Failed to import warp" in verbose.stdout, verbose.stdout
+
+
+@pytest.mark.parametrize("signal_name, exc, code", [("SIGTERM", "stopped", 143), ("SIGINT (Ctrl-C)", "interrupt", 130)])
+def test_a_stop_says_whether_the_same_command_resumes(signal_name, exc, code, capsys):
+    """A command that keeps its work (train, ablate, ...) tells the user to run it again to
+    resume; one that writes nothing or writes whole (bench, eval, ...) does not promise a resume."""
+    from ttmjx import cli, commandline
+
+    def stopped(_args):
+        raise commandline.Stopped(15) if exc == "stopped" else KeyboardInterrupt
+
+    def one_line(name: str) -> str:
+        commands = {name: cli.COMMANDS[name]._replace(run=stopped, parse=lambda rest: None)}
+        with pytest.raises(SystemExit) as e:
+            commandline.run(commands, [name])
+        assert e.value.code == code
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and err.startswith(f"ttmjx {name}: error: stopped by {signal_name}; "), err
+        return err
+    for name in ("train", "ablate", "baseline", "demos", "robot run", "robot sweep"):
+        assert one_line(name).endswith("what was saved is kept: run the same command to resume")
+    for name in ("bench", "eval", "export", "throw", "sim", "robot bench", "robot serve"):
+        assert one_line(name).endswith("it keeps no partial output: run the same command again")

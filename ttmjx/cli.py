@@ -672,21 +672,24 @@ def robot_serve(a: RobotServeArgs) -> None:
 
 
 COMMANDS: dict[str, Command] = {
-    "throw": Command(ThrowArgs, throw, "sample throws and simulate their first bounce"),
-    "bench": Command(BenchArgs, bench, "physics throughput of a backend"),
-    "render": Command(RenderArgs, render, "write a short video (GIF) of a few throws, headless"),
-    "sim": Command(SimArgs, sim, "a short simulation run that prints what it did"),
+    "throw": Command(ThrowArgs, throw, "sample throws and simulate their first bounce", resumes=False),
+    "bench": Command(BenchArgs, bench, "physics throughput of a backend", resumes=False),
+    "render": Command(RenderArgs, render, "write a short video (GIF) of a few throws, headless", resumes=False),
+    "sim": Command(SimArgs, sim, "a short simulation run that prints what it did", resumes=False),
     "demos": Command(DemosArgs, demos, "collect bootstrap demonstrations into a dataset directory"),
-    "plot-landings": Command(PlotArgs, plot_landings, "draw a dataset's landing points over the table (PNG)"),
+    "plot-landings": Command(PlotArgs, plot_landings, "draw a dataset's landing points over the table (PNG)",
+                             resumes=False),
     "train": Command(TrainArgs, train, "GoalsEye training: demonstrations, GCBC, self-practice, evaluation",
                      parse_train),
-    "eval": Command(EvalArgs, evaluate, "goal-reaching metrics of a run or checkpoint"),
+    "eval": Command(EvalArgs, evaluate, "goal-reaching metrics of a run or checkpoint", resumes=False),
     "ablate": Command(AblateArgs, ablate, "a paper ablation: cells of (variant, seed) runs -> table, curves, landing maps"),
     "baseline": Command(BaselineArgs, baseline, "Table I: RL baselines (brax PPO, SAC, ES), GCSL, LFP and GoalsEye -> table, curves"),
-    "export": Command(ExportArgs, export, "safetensors weights + contract + golden self-test + ONNX graph for the robot runner"),
+    "export": Command(ExportArgs, export, "safetensors weights + contract + golden self-test + ONNX graph for the robot runner",
+                      resumes=False),
     "robot run": robot_side.COMMANDS["robot run"]._replace(run=lambda a: robot_side.robot_run(a, sim_station)),
     "robot sweep": Command(RobotSweepArgs, robot_sweep, "strict success against added ball and command latency"),
-    "robot serve": Command(RobotServeArgs, robot_serve, "serve the simulated station over EGM, Modbus TCP and UDP (rehearsal)"),
+    "robot serve": Command(RobotServeArgs, robot_serve, "serve the simulated station over EGM, Modbus TCP and UDP (rehearsal)",
+                           resumes=False),
     "robot bench": robot_side.COMMANDS["robot bench"],
 }
 

@@ -94,6 +94,7 @@ class Command(NamedTuple):
     run: Callable[[Any], None]                   # does the work and prints
     help: str                                    # one line for `ttmjx --help`
     parse: Callable[[list[str]], Any] | None = None   # instead of tyro on `args`' own defaults
+    resumes: bool = True                         # a stopped call keeps its work and the same command goes on
 
 
 
@@ -249,6 +250,13 @@ def resent(unraisable) -> bool:
     return True
 
 
+def after_stop(cmd: Command) -> str:
+    """What a stopped call of `cmd` leaves, and what to do next."""
+    if cmd.resumes:
+        return "what was saved is kept: run the same command to resume"
+    return "it keeps no partial output: run the same command again"
+
+
 def run(commands: dict, argv: list[str], prepare: Callable[[], None] | None = None) -> None:
     """Parse and run the subcommand `argv` names; every failure ends as one line and its exit
     code. `prepare` runs before parsing (e.g. JAX's distributed start, which presets need)."""
@@ -261,7 +269,7 @@ def run(commands: dict, argv: list[str], prepare: Callable[[], None] | None = No
             args = cmd.parse(rest) if cmd.parse else parse_args(name, cmd.args, rest)
             cmd.run(args)
     except Stopped:
-        fail(name, "stopped by SIGTERM; what was saved is kept: run the same command to resume", code=143)
+        fail(name, f"stopped by SIGTERM; {after_stop(cmd)}", code=143)
     except (ValueError, FileExistsError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as e:
         fail(name, str(e) if not isinstance(e, OSError) or not e.strerror else file_error(e))
     except OSError as e:          # permission denied, disk full: the environment, not the input
@@ -269,4 +277,4 @@ def run(commands: dict, argv: list[str], prepare: Callable[[], None] | None = No
     except (RuntimeError, ArithmeticError) as e:   # e.g. training.trainer.NonFiniteError
         fail(name, f"{type(e).__name__}: {e}", code=1)
     except KeyboardInterrupt:
-        fail(name, "stopped by SIGINT (Ctrl-C); what was saved is kept: run the same command to resume", code=130)
+        fail(name, f"stopped by SIGINT (Ctrl-C); {after_stop(cmd)}", code=130)

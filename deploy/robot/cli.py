@@ -242,7 +242,8 @@ def robot_bench(a: RobotBenchArgs) -> None:
 # --------------------------------------------------------------------------------------------
 COMMANDS: dict[str, Command] = {
     "robot run": Command(RobotRunArgs, robot_run, "the robot runner: play an exported policy on a station"),
-    "robot bench": Command(RobotBenchArgs, robot_bench, "numpy or ONNX policy step latency on one CPU core"),
+    "robot bench": Command(RobotBenchArgs, robot_bench, "numpy or ONNX policy step latency on one CPU core",
+                           resumes=False),
 }
 
 
