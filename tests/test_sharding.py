@@ -169,7 +169,7 @@ def assert_same_result(got: list[dict], want: list[dict]):
             if k in EXACT:
                 assert g[k] == w[k], (g["iteration"], k)
                 continue
-            rel, abs_ = ((LOSS_RTOL, 0) if k == "loss" else (DIST_RTOL, 0) if k.endswith("mean_dist")
+            rel, abs_ = ((LOSS_RTOL, 0) if k == "loss" else (DIST_RTOL, 0) if k.endswith(("mean_dist", "mean_dist_landed"))
                          else (0, RATE_ATOL))
             assert g[k] == pytest.approx(w[k], rel=rel, abs=abs_), (g["iteration"], k, g[k], w[k])
 
