@@ -8,8 +8,9 @@
 #   bash scripts/gpu_lanes.sh wait WAIT_S         # later calls: keep watching (the lanes started)
 # A lane spec is GPU:NAME:ARGS, ARGS the ttmjx command line with '+' for spaces; specs of one GPU
 # run in the order given. After an `ablate` spec with --out, its finished cells are evaluated on
-# eval/goals/edges_net.csv into edges/ (scripts/table1_figures.py reads them). Each call leaves in $OUT: log.txt and lanes.tgz (every file under 2 MB
-# under /tmp/lanes but checkpoints and RL states; each job's log tail), refreshed every 30 s.
+# eval/goals/edges_net.csv into edges/ (scripts/table1_figures.py reads them). Each call leaves
+# in $OUT: log.txt and lanes.tgz (every file under 2 MB under /tmp/lanes but checkpoints and RL
+# states; each job's log tail), refreshed every 30 s.
 # Give WAIT_S at least 40 s under the call's limit.
 set -uo pipefail
 # JAX's default allocator (preallocating 75% of the GPU as one pool): a lane has its GPU alone.
