@@ -63,7 +63,9 @@ if [[ $mode == start ]]; then
       </dev/null >/dev/null 2>&1 &
   done
   if (( TESTS )); then   # the README's test command, JAX on the CPU, on another x86-64 make
-    python3 -m pip install -q --no-deps --no-index .wheels/test/*.whl 2>&1 | grep -v -i warn | tail -2
+    # the image's own protobuf and requests are kept where it has them (onnx was built against them)
+    python3 -m pip install -q --no-deps --no-index .wheels/test/{pytest_xdist,execnet,abb_robot_client,pymodbus,websocket_client}*.whl 2>&1 | grep -v -i warn | tail -2
+    python3 -c "import google.protobuf, requests" 2>/dev/null || python3 -m pip install -q --no-deps --no-index .wheels/test/*.whl 2>&1 | grep -v -i warn | tail -2
     setsid bash -c "cd $PWD; CUDA_VISIBLE_DEVICES= JAX_PLATFORMS=cpu TTMJX_JAX_CACHE=/tmp/jaxcache_cpu \
       /usr/bin/time -f 'tests wall %e s' python3 -m pytest -n ${TEST_WORKERS:-12} --durations=20 \
       --junitxml=$T/tests.xml -p no:cacheprovider > $T/tests.log 2>&1; touch $T/tests.done" </dev/null >/dev/null 2>&1 &
