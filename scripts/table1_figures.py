@@ -18,6 +18,10 @@ import numpy as np  # noqa: E402
 ARMS = {"goalseye": "GoalsEye (3,600 demonstrations)", "r0.2": "GoalsEye, 0.2 updates per practice trajectory",
         "d1000": "1,000 demonstrations", "d100": "100 demonstrations", "d10": "10 demonstrations",
         "lfp-equal-updates": "LFP (3,600, no practice)", "lfp-equal-data": "LFP (120,000, no practice)"}
+# The "New Results" setting (frame stack, 10 members; ablations noise and ensembles): its own figure,
+# OUT with "-new" before the extension. Its n10 cells are copies of noise's "off" and are not drawn twice.
+NEW_ARMS = {"off": "frame stack, 10 members, no noise", "paper-b0.05": "the paper's noise a + z, b = 0.05",
+            "n1": "frame stack, 1 member"}
 
 
 def runs_of(root: str, arm: str) -> list[list[dict]]:
@@ -44,10 +48,10 @@ def band(ax, curves: list[tuple[np.ndarray, np.ndarray]], xs: np.ndarray | None 
     return line
 
 
-def main(root: str, out: str) -> None:
+def main(root: str, out: str, arms: dict = ARMS) -> None:
     fig, (ax_eval, ax_good) = plt.subplots(1, 2, figsize=(12, 4.5))
     goalseye_x = series(runs_of(root, "goalseye")[0], "eval_within_30cm", "trajectories")[0]
-    for arm, label in ARMS.items():
+    for arm, label in arms.items():
         runs = runs_of(root, arm)
         if not runs:
             continue
@@ -73,7 +77,7 @@ def main(root: str, out: str) -> None:
 def edges_table(root: str) -> None:
     """Print each arm's mean +- 95% interval (Student's t) over seeds on the edges-and-net goals."""
     from eval.tables import interval
-    for arm in ARMS:
+    for arm in {**ARMS, **NEW_ARMS}:
         rows = [json.load(open(p)) for p in sorted(glob.glob(os.path.join(root, "edges", f"*-{arm}-seed*.json")))]
         if rows:
             stats = {k: interval([r[k] for r in rows]) for k in ("within_30cm", "within_20cm", "hit_rate")}
@@ -83,4 +87,6 @@ def edges_table(root: str) -> None:
 
 if __name__ == "__main__":
     main(*sys.argv[1:3])
+    stem, ext = os.path.splitext(sys.argv[2])
+    main(sys.argv[1], f"{stem}-new{ext}", NEW_ARMS)
     edges_table(sys.argv[1])
