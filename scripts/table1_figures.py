@@ -62,7 +62,8 @@ def main(root: str, out: str, arms: dict = ARMS) -> None:
         good = [series(r, "practice_within_30cm", "trajectories") for r in runs]
         if len(good[0][0]):
             band(ax_good, good, color=line.get_color(), label=label)
-    ax_eval.set(xlabel="trajectories (LFP: at GoalsEye's update count)", ylabel="% within 30 cm (held-out goals)",
+    lfp = any(arm.startswith("lfp") for arm in arms)
+    ax_eval.set(xlabel="trajectories" + (" (LFP: at GoalsEye's update count)" if lfp else ""), ylabel="% within 30 cm (held-out goals)",
                 title="evaluation during training (mean, band: min-max of seeds)")
     ax_good.set(xlabel="trajectories", ylabel="good trajectories per 100 seen",
                 title="practice: hits landing within 30 cm of their goal")
