@@ -50,7 +50,8 @@ def band(ax, curves: list[tuple[np.ndarray, np.ndarray]], xs: np.ndarray | None 
 
 def main(root: str, out: str, arms: dict = ARMS) -> None:
     fig, (ax_eval, ax_good) = plt.subplots(1, 2, figsize=(12, 4.5))
-    goalseye_x = series(runs_of(root, "goalseye")[0], "eval_within_30cm", "trajectories")[0]
+    lfp = any(arm.startswith("lfp") for arm in arms)
+    goalseye_x = series(runs_of(root, "goalseye")[0], "eval_within_30cm", "trajectories")[0] if lfp else None
     for arm, label in arms.items():
         runs = runs_of(root, arm)
         if not runs:
@@ -62,7 +63,6 @@ def main(root: str, out: str, arms: dict = ARMS) -> None:
         good = [series(r, "practice_within_30cm", "trajectories") for r in runs]
         if len(good[0][0]):
             band(ax_good, good, color=line.get_color(), label=label)
-    lfp = any(arm.startswith("lfp") for arm in arms)
     ax_eval.set(xlabel="trajectories" + (" (LFP: at GoalsEye's update count)" if lfp else ""), ylabel="% within 30 cm (held-out goals)",
                 title="evaluation during training (mean, band: min-max of seeds)")
     ax_good.set(xlabel="trajectories", ylabel="good trajectories per 100 seen",

@@ -246,5 +246,5 @@ def test_a_stop_says_whether_the_same_command_resumes(signal_name, exc, code, ca
         return err
     for name in ("train", "ablate", "baseline", "demos", "robot run", "robot sweep"):
         assert one_line(name).endswith("what was saved is kept: run the same command to resume")
-    for name in ("bench", "eval", "export", "throw", "sim", "robot bench", "robot serve"):
+    for name in ("bench", "eval", "export", "throw", "sim", "render", "plot-landings", "robot bench", "robot serve"):
         assert one_line(name).endswith("it keeps no partial output: run the same command again")
