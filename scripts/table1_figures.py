@@ -8,6 +8,7 @@ that were hits landing within 30 cm of their own goal on the opponent's half, pe
 import glob
 import json
 import os
+import re
 import sys
 
 import matplotlib
@@ -21,6 +22,8 @@ ARMS = {"goalseye": "GoalsEye (3,600 demonstrations)", "r0.2": "GoalsEye, 0.2 up
 # The "New Results" setting (frame stack, 10 members; ablations noise and ensembles): its own figure,
 # OUT with "-new" before the extension. Its n10 cells are copies of noise's "off" and are not drawn twice.
 NEW_ARMS = {"off": "frame stack, 10 members, no noise", "paper-b0.05": "the paper's noise a + z, b = 0.05",
+            "paper-b0.1": "the paper's noise, b = 0.1", "paper-b0.2": "the paper's noise, b = 0.2",
+            "b0.05": "our offset noise, b = 0.05", "b0.1": "our offset noise, b = 0.1",
             "n1": "frame stack, 1 member"}
 
 
@@ -79,7 +82,10 @@ def edges_table(root: str) -> None:
     """Print each arm's mean +- 95% interval (Student's t) over seeds on the edges-and-net goals."""
     from eval.tables import interval
     for arm in {**ARMS, **NEW_ARMS}:
-        rows = [json.load(open(p)) for p in sorted(glob.glob(os.path.join(root, "edges", f"*-{arm}-seed*.json")))]
+        # ABLATION-ARM-seedK.json, the ablation one word: "b0.05" must not take "paper-b0.05"
+        paths = glob.glob(os.path.join(root, "edges", f"*-{arm}-seed*.json"))
+        rows = [json.load(open(p)) for p in sorted(paths)
+                if re.fullmatch(rf"[a-z]+-{re.escape(arm)}-seed\d+\.json", os.path.basename(p))]
         if rows:
             stats = {k: interval([r[k] for r in rows]) for k in ("within_30cm", "within_20cm", "hit_rate")}
             cells = [f"{k} {100 * v['mean']:.1f} +- {100 * (v['half'] or 0):.1f}" for k, v in stats.items()]
