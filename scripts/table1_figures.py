@@ -78,14 +78,19 @@ def main(root: str, out: str, arms: dict = ARMS) -> None:
     print(out)
 
 
+def edges_rows(root: str, arm: str) -> list[dict]:
+    """The edges-and-net evaluations of one arm's seeds: ROOT/edges/ABLATION-ARM-seedK.json, the
+    ablation one word, so that arm "b0.05" does not take "paper-b0.05"'s files."""
+    paths = glob.glob(os.path.join(root, "edges", f"*-{arm}-seed*.json"))
+    return [json.load(open(p)) for p in sorted(paths)
+            if re.fullmatch(rf"[a-z]+-{re.escape(arm)}-seed\d+\.json", os.path.basename(p))]
+
+
 def edges_table(root: str) -> None:
     """Print each arm's mean +- 95% interval (Student's t) over seeds on the edges-and-net goals."""
     from eval.tables import interval
     for arm in {**ARMS, **NEW_ARMS}:
-        # ABLATION-ARM-seedK.json, the ablation one word: "b0.05" must not take "paper-b0.05"
-        paths = glob.glob(os.path.join(root, "edges", f"*-{arm}-seed*.json"))
-        rows = [json.load(open(p)) for p in sorted(paths)
-                if re.fullmatch(rf"[a-z]+-{re.escape(arm)}-seed\d+\.json", os.path.basename(p))]
+        rows = edges_rows(root, arm)
         if rows:
             stats = {k: interval([r[k] for r in rows]) for k in ("within_30cm", "within_20cm", "hit_rate")}
             cells = [f"{k} {100 * v['mean']:.1f} +- {100 * (v['half'] or 0):.1f}" for k, v in stats.items()]
