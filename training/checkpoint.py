@@ -19,6 +19,7 @@ import os
 import re
 import shutil
 import sys
+import threading
 from typing import Callable, NamedTuple
 
 import jax
@@ -151,12 +152,29 @@ class _Held(logging.Filter):
         return False
 
 
+class MainThreadStderr:
+    """stderr after a save failed for want of space: the failed save's threads go on finishing
+    after the OSError (tensorstore's callbacks onto Orbax's closed event loop) and print
+    tracebacks behind the command's one line; only the main thread's writes pass."""
+    def __init__(self, stream):
+        self.stream = stream
+
+    def write(self, text: str) -> int:
+        if threading.current_thread() is threading.main_thread():
+            return self.stream.write(text)
+        return len(text)
+
+    def __getattr__(self, name):
+        return getattr(self.stream, name)
+
+
 @contextlib.contextmanager
 def _disk_errors(directory: str, step: int):
     """A full disk (or a file-size limit, a quota) while Orbax saves step `step` becomes one
     OSError naming the file and the checkpoint: its partial step directory is removed, the
     newest complete checkpoint stays. Orbax's logged tracebacks and what its threads print are
-    held while it saves and shown again unless the save failed for want of space."""
+    held while it saves and shown again unless the save failed for want of space; then stderr
+    passes only the main thread's writes (MainThreadStderr)."""
     logger, held, err = logging.getLogger("absl"), _Held(), io.StringIO()
     logger.addFilter(held)
     real_stderr, sys.stderr = sys.stderr, err
@@ -176,7 +194,7 @@ def _disk_errors(directory: str, step: int):
                             f"saved; the newest complete checkpoint stays: free space and run the same command)",
                       path or os.path.abspath(directory)) from None
     finally:
-        sys.stderr = real_stderr
+        sys.stderr = real_stderr if full is None else MainThreadStderr(real_stderr)
         logger.removeFilter(held)
         if full is None:
             real_stderr.write(err.getvalue())

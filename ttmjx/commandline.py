@@ -110,7 +110,9 @@ def fail(name: str, message: str, code: int = 2) -> NoReturn:
     if name == "train":            # a config's own message names its field: name the flag
         message = re.sub(r"\b(RunConfig|TrainConfig|PolicyConfig|Robot|Throws|Timing)\.(\w+)=?",
                          lambda m: FLAG_PREFIX[m[1]] + m[2].replace("_", "-") + " ", message)
-    print(f"ttmjx{' ' + name if name else ''}: error: {' '.join(message.split())}", file=sys.stderr)
+    # one write: print() writes the line and its newline apart, and another thread may print between
+    sys.stderr.write(f"ttmjx{' ' + name if name else ''}: error: {' '.join(message.split())}\n")
+    sys.stderr.flush()
     sys.exit(code)
 
 
