@@ -224,10 +224,14 @@ ABLATIONS: dict[str, Ablation] = {
     # LFP is GCBC on the demonstrations alone. Equal updates: same demonstrations and schedule,
     # practice rounds replaced by train-only rounds. Equal data: as many demonstrations as
     # GoalsEye sees trajectories (demonstrations + practice), and GoalsEye's updates.
+    # lfp-r0.2-updates: LFP with the updates of GoalsEye at 0.2 updates per practice trajectory
+    # (the ratio ablation's r0.2: the same rounds, each train-only).
     "practice": Ablation(
         "self-supervised practice against LFP at equal gradient updates and at equal data", "sim",
         {"goalseye": {}, "lfp-equal-updates": {"practice": False},
-         "lfp-equal-data": {"practice": False, "demos": ALL_TRAJECTORIES, "pretrain_steps": GOALSEYE_UPDATES}},
+         "lfp-equal-data": {"practice": False, "demos": ALL_TRAJECTORIES, "pretrain_steps": GOALSEYE_UPDATES},
+         "lfp-r0.2-updates": {"practice": False, "episodes_per_ssp": per_round(0.2),
+                              "checkpoint_every": checkpoint_cadence(0.2)}},
         x="updates"),
     # The paper publishes neither S (updates per practice round) nor M (episodes per round); the
     # presets' 200 per 4,000 (0.05 updates per practice trajectory) is this project's. The sweep

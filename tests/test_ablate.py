@@ -50,6 +50,14 @@ def test_derived_overrides_follow_the_base():
     assert same_data.demos == goalseye.total_trajectories == 328 and not same_data.practice
 
 
+def test_lfp_at_the_r02_updates_trains_as_many_updates_as_goalseye_at_r02():
+    kw = dict(scale="full", seed=0, run_dir="r", trajectories=120_000)
+    goalseye = ablate.variant_config("ratio", "r0.2", **kw)
+    lfp = ablate.variant_config("practice", "lfp-r0.2-updates", **kw)
+    assert goalseye.practice and not lfp.practice and lfp.demos == goalseye.demos
+    assert ablate.goalseye_updates(lfp) == ablate.goalseye_updates(goalseye) == 25_400
+
+
 def test_the_ratio_sweep_changes_updates_per_trajectory_and_nothing_before_practice():
     from training.trainer import pretrain_iterations
     base = ablate.full_base("sim")
@@ -186,7 +194,7 @@ def test_settings_apply_to_every_cell_before_the_variants_own():
                                   ("demo_source=striker", "train.learning_rate=5e-4", "practice=true"))
             for v in ablate.ABLATIONS["practice"].variants]
     assert all(c.demo_source == "striker" and c.train.learning_rate == 5e-4 for c in cfgs)
-    assert [c.practice for c in cfgs] == [True, False, False]       # the variants' own fields win
+    assert [c.practice for c in cfgs] == [True, False, False, False]   # the variants' own fields win
     for bad, says in [("demos", "expected FIELD=VALUE"), ("foo=1", "no field 'foo'"),
                       ("demos=abc", "'abc' is not of type int"), ("practice=yes", "not of type bool"),
                       ("world.throws=any", "--set takes numbers")]:
