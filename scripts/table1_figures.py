@@ -18,7 +18,8 @@ import numpy as np  # noqa: E402
 
 ARMS = {"goalseye": "GoalsEye (3,600 demonstrations)", "r0.2": "GoalsEye, 0.2 updates per practice trajectory",
         "d1000": "1,000 demonstrations", "d100": "100 demonstrations", "d10": "10 demonstrations",
-        "lfp-equal-updates": "LFP (3,600, no practice)", "lfp-equal-data": "LFP (120,000, no practice)"}
+        "lfp-equal-updates": "LFP (3,600, no practice)", "lfp-equal-data": "LFP (120,000, no practice)",
+        "lfp-r0.2-updates": "LFP (3,600, 25,400 updates, no practice)"}
 # The "New Results" setting (frame stack, 10 members; ablations noise and ensembles): its own figure,
 # OUT with "-new" before the extension. Its n10 cells are copies of noise's "off" and are not drawn twice.
 NEW_ARMS = {"off": "frame stack, 10 members, no noise", "paper-b0.05": "the paper's noise a + z, b = 0.05",
@@ -51,22 +52,31 @@ def band(ax, curves: list[tuple[np.ndarray, np.ndarray]], xs: np.ndarray | None 
     return line
 
 
+# LFP's data is fixed: its evaluations are drawn at the trajectories of the GoalsEye arm that
+# trains the same updates (LFP at equal data is evaluated once, at its own x).
+LFP_TWIN = {"lfp-equal-updates": "goalseye", "lfp-r0.2-updates": "r0.2"}
+
+
+def twin_x(root: str, arm: str) -> np.ndarray | None:
+    """Trajectories of the evaluations of `arm`'s GoalsEye twin (its first seed), or None."""
+    twin = runs_of(root, LFP_TWIN[arm]) if arm in LFP_TWIN else []
+    return series(twin[0], "eval_within_30cm", "trajectories")[0] if twin else None
+
+
 def main(root: str, out: str, arms: dict = ARMS) -> None:
     fig, (ax_eval, ax_good) = plt.subplots(1, 2, figsize=(12, 4.5))
-    lfp = any(arm.startswith("lfp") for arm in arms)
-    goalseye_x = series(runs_of(root, "goalseye")[0], "eval_within_30cm", "trajectories")[0] if lfp else None
+    lfp = any(arm in LFP_TWIN for arm in arms)
     for arm, label in arms.items():
         runs = runs_of(root, arm)
         if not runs:
             continue
-        # LFP's data is fixed: its points are drawn at GoalsEye's trajectories of the same update count
-        xs = goalseye_x if arm.startswith("lfp") else None   # (one evaluation: drawn at its own x)
+        xs = twin_x(root, arm)
         line = band(ax_eval, [series(r, "eval_within_30cm", "trajectories") for r in runs], xs,
                     label=f"{label}, {len(runs)} seeds")
         good = [series(r, "practice_within_30cm", "trajectories") for r in runs]
         if len(good[0][0]):
             band(ax_good, good, color=line.get_color(), label=label)
-    ax_eval.set(xlabel="trajectories" + (" (LFP: at GoalsEye's update count)" if lfp else ""), ylabel="% within 30 cm (held-out goals)",
+    ax_eval.set(xlabel="trajectories" + (" (LFP: at its GoalsEye's update count)" if lfp else ""), ylabel="% within 30 cm (held-out goals)",
                 title="evaluation during training (mean, band: min-max of seeds)")
     ax_good.set(xlabel="trajectories", ylabel="good trajectories per 100 seen",
                 title="practice: hits landing within 30 cm of their goal")
