@@ -227,7 +227,8 @@ ABLATIONS: dict[str, Ablation] = {
     # lfp-r0.2-updates: LFP with the updates of GoalsEye at 0.2 updates per practice trajectory
     # (the ratio ablation's r0.2: the same rounds, each train-only).
     "practice": Ablation(
-        "self-supervised practice against LFP at equal gradient updates and at equal data", "sim",
+        "self-supervised practice against LFP at equal gradient updates, at equal data and at the updates of "
+        "0.2 updates per practice trajectory", "sim",
         {"goalseye": {}, "lfp-equal-updates": {"practice": False},
          "lfp-equal-data": {"practice": False, "demos": ALL_TRAJECTORIES, "pretrain_steps": GOALSEYE_UPDATES},
          "lfp-r0.2-updates": {"practice": False, "episodes_per_ssp": per_round(0.2),
