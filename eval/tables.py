@@ -12,7 +12,7 @@ import numpy as np
 
 from ttmjx.world import files
 from ttmjx.world.config import Table
-from ttmjx.world.goals import RADII, landed_mean_distance
+from ttmjx.world.goals import RADII, landed_mean_distance, scored_distance
 
 # Two-sided 95% quantiles of Student's t (t_{0.975, df}); beyond the table the next lower
 # df is used, which widens the interval slightly (conservative).
@@ -178,8 +178,8 @@ def _landings(d: dict) -> tuple:
     goal = np.array(d["goal"], np.float64)
     land = np.array([[np.nan, np.nan] if p is None or None in p else p for p in d["landing"]], np.float64)
     ok = np.array(d["hit"], bool) & np.isfinite(land).all(1)
-    dist = np.linalg.norm(np.where(ok[:, None], land, 0.0) - goal, axis=1)
-    colour = np.where(ok & (dist <= RADII[0]), "tab:green",
+    scored = scored_distance(land, goal, d["hit"], d["on_opponent"])   # a landing off the half is red
+    colour = np.where(scored <= RADII[0], "tab:green",
                       np.where(np.array(d["on_opponent"], bool), "tab:orange", "tab:red"))
     return goal, land, ok, colour
 

@@ -197,3 +197,16 @@ def test_tracks_recompute_the_recorded_landings(eval_dir):
         assert np.linalg.norm(p1[:2] + v[:2] * tau - landing) <= 2 * World().physics_dt * speed + 0.002, i
         checked += 1
     assert checked >= 4, checked
+
+
+def test_the_landing_map_colours_a_ball_off_the_half_red_however_near_its_goal():
+    """The map's green is the strict success: a ball 10 cm beyond the side line from a goal at
+    the edge is a miss (red), as in the tables; one on the half within 30 cm is green."""
+    from eval.tables import _landings
+    from ttmjx.world.config import Table
+    hw = Table().half_width
+    d = {"goal": [[0.5, hw - 0.05], [0.5, 0.0], [0.5, 0.0]],
+         "landing": [[0.5, hw + 0.05], [0.6, 0.1], None],
+         "hit": [True, True, False], "on_opponent": [False, True, False]}
+    _, _, landed, colour = _landings(d)
+    assert list(colour) == ["tab:red", "tab:green", "tab:red"] and list(landed) == [True, True, False]
