@@ -173,12 +173,19 @@ def plot_landing_map(results: list[dict], png: str, title: str, table: Table = T
     return save_png(fig, png)
 
 
+def landing_arrays(d: dict) -> tuple:
+    """(goal [G, 2], landing [G, 2] with NaN where the ball never came down, hit [G] bool,
+    on_opponent [G] bool) of a cell's stored final-evaluation landings."""
+    land = np.array([[np.nan, np.nan] if p is None or None in p else p for p in d["landing"]], np.float64)
+    return (np.array(d["goal"], np.float64), land, np.array(d["hit"], bool),
+            np.array(d["on_opponent"], bool))
+
+
 def _landings(d: dict) -> tuple:
     """(goal [G, 2], landing [G, 2], landed [G] bool, colour [G]) of a cell's final evaluation."""
-    goal = np.array(d["goal"], np.float64)
-    land = np.array([[np.nan, np.nan] if p is None or None in p else p for p in d["landing"]], np.float64)
-    ok = np.array(d["hit"], bool) & np.isfinite(land).all(1)
-    scored = scored_distance(land, goal, d["hit"], d["on_opponent"])   # a landing off the half is red
+    goal, land, hit, on = landing_arrays(d)
+    ok = hit & np.isfinite(land).all(1)
+    scored = scored_distance(land, goal, hit, on)   # a landing off the half is red
     colour = np.where(scored <= RADII[0], "tab:green",
                       np.where(np.array(d["on_opponent"], bool), "tab:orange", "tab:red"))
     return goal, land, ok, colour

@@ -13,7 +13,7 @@ import os
 
 import numpy as np
 
-from eval.tables import interval
+from eval.tables import interval, landing_arrays
 from ttmjx.world.goals import RADII, scored_distance
 
 
@@ -24,12 +24,6 @@ def seed_landings(root: str, arm: str) -> list[dict]:
     if not paths:
         raise SystemExit(f"no results for {arm!r} under {root} (expected ABLATION/VARIANT, e.g. ratio/r0.2)")
     return [json.load(open(p))["landings"] for p in paths]
-
-
-def arrays(d: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """goal [G, 2], landing [G, 2] (NaN where none), hit [G], on_opponent [G]."""
-    land = np.array([[np.nan, np.nan] if p is None or None in p else p for p in d["landing"]], float)
-    return np.array(d["goal"], float), land, np.array(d["hit"], bool), np.array(d["on_opponent"], bool)
 
 
 def thirds(x: np.ndarray) -> list[tuple[float, float]]:
@@ -44,13 +38,13 @@ def main() -> None:
     ap.add_argument("arms", nargs="+", help="ABLATION/VARIANT, e.g. ratio/r0.2")
     ap.add_argument("--demos", help="a `ttmjx demos` output directory (trajectories.npz)")
     a = ap.parse_args()
-    goal0 = arrays(seed_landings(a.root, a.arms[0])[0])[0]
+    goal0 = landing_arrays(seed_landings(a.root, a.arms[0])[0])[0]
     bins, q = thirds(goal0[:, 0])
     print("goal thirds by distance from the net (m): " + ", ".join(f"{lo:.2f}-{hi:.2f}" for lo, hi in zip(q, q[1:])))
     for arm in a.arms:
         per_seed, shares, near_err = [], [], []
         for d in seed_landings(a.root, arm):
-            goal, land, hit, on = arrays(d)
+            goal, land, hit, on = landing_arrays(d)
             if not np.allclose(goal, goal0):
                 raise SystemExit(f"{arm}: its goals are not the first arm's; the thirds would not compare")
             win = scored_distance(land, goal, hit, on) <= RADII[0]
