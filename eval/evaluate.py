@@ -24,10 +24,16 @@ from ttmjx.world.record import Trajectories
 
 
 def rollout_goals(world: World, pcfg: PolicyConfig, params, backend: Backend, key, goals, members=None):
-    """Trajectories of the policy toward goals [G, 2] (G a multiple of members)."""
+    """Trajectories [N] of the policy toward goals [N, 2], one throw each. An ensemble plays in
+    equal blocks: goals and their throws are repeated cyclically up to a multiple of the members
+    and the repeats dropped, so every member count sees the same N goals and throws, once each."""
+    goals = np.asarray(goals, np.float32)
     k_throw, k_roll = jax.random.split(key)
     th = thrower.sample_throws(k_throw, world, len(goals))
-    return backend.rollout(make_policy(pcfg), params, k_roll, th, goals, members=members)
+    idx = padded(np.arange(len(goals)), members)
+    tr = backend.rollout(make_policy(pcfg), params, k_roll, jax.tree.map(lambda x: x[idx], th), goals[idx],
+                         members=members)
+    return Trajectories(*(np.asarray(x)[:len(goals)] for x in tr))
 
 
 def padded(goals: np.ndarray, members: int | None) -> np.ndarray:
@@ -39,10 +45,9 @@ def padded(goals: np.ndarray, members: int | None) -> np.ndarray:
 
 def uniform_run(world: World, pcfg: PolicyConfig, params, backend: Backend, key, n_goals: int = 200,
                 members: int | None = None) -> tuple[dict, Trajectories]:
-    """(goal_metrics, Trajectories [G]) over n_goals uniform goals on the opponent's half
-    (G: n_goals padded to a multiple of the members)."""
+    """(goal_metrics, Trajectories [n_goals]) over n_goals uniform goals on the opponent's half."""
     k_goal, k_run = jax.random.split(key)
-    goals = padded(np.asarray(uniform_goals(k_goal, n_goals, world.table), np.float32), members)
+    goals = np.asarray(uniform_goals(k_goal, n_goals, world.table), np.float32)
     tr = rollout_goals(world, pcfg, params, backend, k_run, goals, members)
     return goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent), tr
 
@@ -58,10 +63,9 @@ def five_run(world: World, pcfg: PolicyConfig, params, backend: Backend, key, pe
     """(metrics, Trajectories) of the five-goal protocol: per_goal attempts at each of goals A-E;
     totals plus per goal."""
     goals, names = five_goals(per_goal)
-    idx = padded(np.arange(len(goals)), members)
-    tr = rollout_goals(world, pcfg, params, backend, key, goals[idx], members)
-    out = goal_metrics(tr.landing, goals[idx], tr.hit, tr.on_opponent)
-    out["per_goal"] = per_goal_metrics(tr.landing, goals[idx], tr.hit, tr.on_opponent, [names[i] for i in idx])
+    tr = rollout_goals(world, pcfg, params, backend, key, goals, members)
+    out = goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent)
+    out["per_goal"] = per_goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent, list(names))
     return out, tr
 
 
@@ -74,27 +78,27 @@ def evaluate_five(world: World, pcfg: PolicyConfig, params, backend: Backend, ke
 def goal_set_run(world: World, pcfg: PolicyConfig, params, backend: Backend, key, goals,
                  members: int | None = None) -> tuple[dict, Trajectories]:
     """(goal_metrics, Trajectories [N]) of one attempt at each of the user's goals [N, 2]. The
-    throws are those of a uniform evaluation with the same key; an ensemble's equal blocks are
-    filled by repeating goals, and those extra episodes are dropped."""
+    throws are those of a uniform evaluation of as many goals with the same key."""
     goals = np.asarray(goals, np.float32)
     _, k_run = jax.random.split(key)
-    tr = rollout_goals(world, pcfg, params, backend, k_run, padded(goals, members), members)
-    tr = Trajectories(*(np.asarray(x)[:len(goals)] for x in tr))
+    tr = rollout_goals(world, pcfg, params, backend, k_run, goals, members)
     return goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent), tr
 
 
 def uniform_runs(world: World, pcfg: PolicyConfig, params, backend: Backend, keys, n_goals: int = 200,
                  members: int | None = None) -> tuple[list[dict], Trajectories]:
     """`uniform_run` of S independent runs at once: params leaves [S, ...], keys [S] ->
-    ([goal_metrics] per run, Trajectories [S, G]); run s sees the goals and throws that
-    uniform_run(keys[s]) draws."""
+    ([goal_metrics] per run, Trajectories [S, n_goals]); run s sees the goals and throws that
+    uniform_run(keys[s]) draws (repeated for an ensemble's equal blocks as in rollout_goals)."""
     split = jax.vmap(jax.random.split)
     k_goal, k_run = jax.numpy.moveaxis(split(keys), 1, 0)
-    goals = jax.vmap(lambda k: uniform_goals(k, n_goals, world.table))(k_goal)
-    goals = np.asarray(goals, np.float32)[:, padded(np.arange(n_goals), members)]
+    goals = np.asarray(jax.vmap(lambda k: uniform_goals(k, n_goals, world.table))(k_goal), np.float32)
     k_throw, k_roll = jax.numpy.moveaxis(split(k_run), 1, 0)
-    th = jax.vmap(lambda k: thrower.sample_throws(k, world, goals.shape[1]))(k_throw)
-    tr = backend.rollout_seeds(make_policy(pcfg), params, k_roll, th, goals, members=members)
+    th = jax.vmap(lambda k: thrower.sample_throws(k, world, n_goals))(k_throw)
+    idx = padded(np.arange(n_goals), members)
+    tr = backend.rollout_seeds(make_policy(pcfg), params, k_roll, jax.tree.map(lambda x: x[:, idx], th),
+                               goals[:, idx], members=members)
+    tr = Trajectories(*(np.asarray(x)[:, :n_goals] for x in tr))
     return [goal_metrics(tr.landing[s], goals[s], tr.hit[s], tr.on_opponent[s]) for s in range(len(goals))], tr
 
 

@@ -19,7 +19,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import numpy as np
 
-from eval.evaluate import padded, rollout_goals, training_evaluation, training_evaluation_seeds
+from eval.evaluate import rollout_goals, training_evaluation, training_evaluation_seeds
 from training.checkpoint import load_checkpoint
 from training.runlog import MetricsLog
 from training.seeds import SeedRuns, program_key
@@ -274,8 +274,7 @@ def final_evaluation(run_dir: str) -> tuple[dict, dict]:
     cfg = loaded.cfg
     backend = Backend(cfg.world, resolve_backend(cfg.backend))
     k_goal, k_run = jax.random.split(jax.random.PRNGKey(FINAL_EVAL_SEED))
-    goals = padded(np.asarray(uniform_goals(k_goal, cfg.eval_goals, cfg.world.table), np.float32),
-                   cfg.train.members)
+    goals = np.asarray(uniform_goals(k_goal, cfg.eval_goals, cfg.world.table), np.float32)
     tr = rollout_goals(cfg.world, cfg.policy, loaded.params, backend, k_run, goals, cfg.train.members)
     landing = np.asarray(tr.landing, np.float64)
     metrics = goal_metrics(landing, goals, np.asarray(tr.hit), np.asarray(tr.on_opponent))

@@ -20,12 +20,16 @@ ARMS = {"goalseye": "GoalsEye (3,600 demonstrations)", "r0.2": "GoalsEye, 0.2 up
         "d1000": "1,000 demonstrations", "d100": "100 demonstrations", "d10": "10 demonstrations",
         "lfp-equal-updates": "LFP (3,600, no practice)", "lfp-equal-data": "LFP (120,000, no practice)",
         "lfp-r0.2-updates": "LFP (3,600, 25,400 updates, no practice)"}
-# The "New Results" setting (frame stack, 10 members; ablations noise and ensembles): its own figure,
-# OUT with "-new" before the extension. Its n10 cells are copies of noise's "off" and are not drawn twice.
-NEW_ARMS = {"off": "frame stack, 10 members, no noise", "paper-b0.05": "the paper's noise a + z, b = 0.05",
-            "paper-b0.1": "the paper's noise, b = 0.1", "paper-b0.2": "the paper's noise, b = 0.2",
-            "b0.05": "our offset noise, b = 0.05", "b0.1": "our offset noise, b = 0.1",
-            "n1": "frame stack, 1 member"}
+# The "New Results" setting (frame stack, 10 members; ablations noise and ensembles): two figures of
+# their own, OUT with "-new" (noise) and "-ensembles" before the extension. The ensembles' n10 cells
+# are copies of noise's "off" and are drawn from "off".
+NOISE_ARMS = {"off": "frame stack, 10 members, no noise", "paper-b0.05": "the paper's noise a + z, b = 0.05",
+              "paper-b0.1": "the paper's noise, b = 0.1", "paper-b0.2": "the paper's noise, b = 0.2",
+              "b0.05": "our offset noise, b = 0.05", "b0.1": "our offset noise, b = 0.1",
+              "b0.2": "our offset noise, b = 0.2"}
+ENSEMBLE_ARMS = {"n1": "frame stack, 1 member", "n3": "frame stack, 3 members", "n5": "frame stack, 5 members",
+                 "off": "frame stack, 10 members"}
+NEW_ARMS = {**NOISE_ARMS, **ENSEMBLE_ARMS}
 
 
 def runs_of(root: str, arm: str) -> list[list[dict]]:
@@ -110,5 +114,6 @@ def edges_table(root: str) -> None:
 if __name__ == "__main__":
     main(*sys.argv[1:3])
     stem, ext = os.path.splitext(sys.argv[2])
-    main(sys.argv[1], f"{stem}-new{ext}", NEW_ARMS)
+    main(sys.argv[1], f"{stem}-new{ext}", NOISE_ARMS)
+    main(sys.argv[1], f"{stem}-ensembles{ext}", ENSEMBLE_ARMS)
     edges_table(sys.argv[1])
