@@ -33,7 +33,7 @@ def rollout_goals(world: World, pcfg: PolicyConfig, params, backend: Backend, ke
     idx = padded(np.arange(len(goals)), members)
     tr = backend.rollout(make_policy(pcfg), params, k_roll, jax.tree.map(lambda x: x[idx], th), goals[idx],
                          members=members)
-    return Trajectories(*(np.asarray(x)[:len(goals)] for x in tr))
+    return Trajectories(*(x[:len(goals)] for x in tr))
 
 
 def padded(goals: np.ndarray, members: int | None) -> np.ndarray:
@@ -98,7 +98,7 @@ def uniform_runs(world: World, pcfg: PolicyConfig, params, backend: Backend, key
     idx = padded(np.arange(n_goals), members)
     tr = backend.rollout_seeds(make_policy(pcfg), params, k_roll, jax.tree.map(lambda x: x[:, idx], th),
                                goals[:, idx], members=members)
-    tr = Trajectories(*(np.asarray(x)[:, :n_goals] for x in tr))
+    tr = Trajectories(*(x[:, :n_goals] for x in tr))
     return [goal_metrics(tr.landing[s], goals[s], tr.hit[s], tr.on_opponent[s]) for s in range(len(goals))], tr
 
 

@@ -19,15 +19,13 @@ from typing import Any, Callable, NamedTuple
 import jax
 import numpy as np
 
-from eval.evaluate import rollout_goals, training_evaluation, training_evaluation_seeds
+from eval.evaluate import training_evaluation, training_evaluation_seeds, uniform_run
 from training.checkpoint import load_checkpoint
 from training.runlog import MetricsLog
 from training.seeds import SeedRuns, program_key
 from training.trainer import Run
 from ttmjx.world import files
 from ttmjx.world.backends import Backend, resolve_backend
-from ttmjx.world.env import uniform_goals
-from ttmjx.world.goals import goal_metrics
 
 # The final evaluation of every cell uses this key: the same goals and throws for every
 # variant and seed, so differences between cells are the policies', not the draws'.
@@ -273,11 +271,9 @@ def final_evaluation(run_dir: str) -> tuple[dict, dict]:
     loaded = load_checkpoint(run_dir)
     cfg = loaded.cfg
     backend = Backend(cfg.world, resolve_backend(cfg.backend))
-    k_goal, k_run = jax.random.split(jax.random.PRNGKey(FINAL_EVAL_SEED))
-    goals = np.asarray(uniform_goals(k_goal, cfg.eval_goals, cfg.world.table), np.float32)
-    tr = rollout_goals(cfg.world, cfg.policy, loaded.params, backend, k_run, goals, cfg.train.members)
-    landing = np.asarray(tr.landing, np.float64)
-    metrics = goal_metrics(landing, goals, np.asarray(tr.hit), np.asarray(tr.on_opponent))
-    landings = {"goal": goals.astype(np.float64).round(4).tolist(), "landing": landing.round(4).tolist(),
+    metrics, tr = uniform_run(cfg.world, cfg.policy, loaded.params, backend, jax.random.PRNGKey(FINAL_EVAL_SEED),
+                              cfg.eval_goals, cfg.train.members)
+    landings = {"goal": np.asarray(tr.goal, np.float64).round(4).tolist(),
+                "landing": np.asarray(tr.landing, np.float64).round(4).tolist(),
                 "hit": np.asarray(tr.hit, bool).tolist(), "on_opponent": np.asarray(tr.on_opponent, bool).tolist()}
     return metrics, landings
