@@ -2,6 +2,8 @@
 times, compilation cache off, of the tiny world's GoalEnv reset and step (one env, vmapped over
 the tiny SAC cell's envs, 8 steps in a scan), to set beside the RL tests' program compiles
 (docs/BENCHMARKS.md, "The test loop").
+Default compile options, as the RL programs have (the fusion-emitter option of
+ttmjx.tools.calibration is for its own program only).
 
     .venv/bin/python scripts/compile_split.py
 """
