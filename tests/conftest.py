@@ -29,6 +29,14 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
 
 
 
+if os.environ.get("TTMJX_COMPILE_LOG"):          # opt-in profile: tests/compile_log.py
+    import compile_log
+    compile_log.install(os.path.abspath(os.environ["TTMJX_COMPILE_LOG"]))
+
+    def pytest_runtest_logstart(nodeid, location):
+        compile_log.set_test(nodeid)
+
+
 def private_compilation_cache(directory) -> dict:
     """Environment variables that give a subprocess its own copy of the session's compilation
     cache, for a child whose writes are cut short (a file-size limit): JAX writes an entry in
