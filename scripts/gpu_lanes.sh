@@ -53,7 +53,7 @@ edges() {   # edges GPU NAME ARGS: each finished cell of an ablation lane on the
 }
 mode=$1; shift
 if [[ $mode == start ]]; then
-  python3 -m pip install -q --no-deps --no-index .wheels/*.whl 2>&1 | grep -v -i warn | tail -2
+  python3 -m pip install -q --no-deps --no-index ${WHEELS:-.wheels}/*.whl 2>&1 | grep -v -i warn | tail -2
   { nvidia-smi --query-gpu=index,name,memory.total --format=csv,noheader; nproc | sed 's/^/cpu cores: /'
     lscpu | grep -E "Model name"; } >> "$T/log.txt"
   printf '%s\n' $LANES | cut -d: -f1 | sort -u | wc -l > "$T/lanes.n"; echo "$TESTS" > "$T/tests.n"
@@ -64,8 +64,8 @@ if [[ $mode == start ]]; then
   done
   if (( TESTS )); then   # the README's test command, JAX on the CPU, on another x86-64 make
     # the image's own protobuf and requests are kept where it has them (onnx was built against them)
-    python3 -m pip install -q --no-deps --no-index .wheels/test/{pytest_xdist,execnet,abb_robot_client,pymodbus,websocket_client}*.whl 2>&1 | grep -v -i warn | tail -2
-    python3 -c "import google.protobuf, requests" 2>/dev/null || python3 -m pip install -q --no-deps --no-index .wheels/test/*.whl 2>&1 | grep -v -i warn | tail -2
+    python3 -m pip install -q --no-deps --no-index ${WHEELS:-.wheels}/test/{pytest_xdist,execnet,abb_robot_client,pymodbus,websocket_client}*.whl 2>&1 | grep -v -i warn | tail -2
+    python3 -c "import google.protobuf, requests" 2>/dev/null || python3 -m pip install -q --no-deps --no-index ${WHEELS:-.wheels}/test/*.whl 2>&1 | grep -v -i warn | tail -2
     setsid bash -c "cd $PWD; CUDA_VISIBLE_DEVICES= JAX_PLATFORMS=cpu TTMJX_JAX_CACHE=/tmp/jaxcache_cpu \
       /usr/bin/time -f 'tests wall %e s' python3 -m pytest -n ${TEST_WORKERS:-12} --durations=20 \
       --junitxml=$T/tests.xml -p no:cacheprovider > $T/tests.log 2>&1; touch $T/tests.done" </dev/null >/dev/null 2>&1 &

@@ -10,6 +10,9 @@ Bands come from PHYSICS.md / the issue; never widen them to pass: tune ttmjx.wor
 Every MJX experiment runs as batches of calibration.MJX_BATCH through one jit-compiled program
 (module fixtures), so the file compiles MJX once (persistent cache: tests/conftest.py).
 """
+import functools
+from typing import NamedTuple
+
 import numpy as np
 import pytest
 
@@ -29,9 +32,21 @@ FLIGHT_STEPS = 100            # control steps: 1 s
 
 
 # --- the experiments, built once ---------------------------------------------------------------
-def _impact_experiments():
+class Impacts(NamedTuple):
+    parts: dict          # {name: (surface, slice of the batch)}
+    qpos: np.ndarray
+    qvel: np.ndarray
+    net_side: np.ndarray
+
+
+class Flights(NamedTuple):
+    qpos: np.ndarray     # [128, ...]
+    qvel: np.ndarray
+
+
+def _impact_experiments() -> Impacts:
     """All impact experiments in one batch: {name: (surface, slice)} and qpos, qvel, side."""
-    parts, names, qs, vs = {}, [], [], []
+    parts, qs, vs = {}, [], []
     ph = cal.arrival_phases(PHASES)
     for name, surface, speeds in (("table", "table", SPEEDS), ("paddle", "paddle", SPEEDS),
                                   ("table_fast", "table", [MAX_SPEED]),
@@ -45,21 +60,23 @@ def _impact_experiments():
     start = sum(len(x) for x in qs)
     parts["net_throws"] = ("net", slice(start, start + len(q)))
     qs.append(q), vs.append(v)
-    return parts, np.concatenate(qs), np.concatenate(vs), side
+    return Impacts(parts, np.concatenate(qs), np.concatenate(vs), side)
 
 
-def _flight_experiments():
+def _flight_experiments() -> Flights:
     """100 free-flight throws (half with spin) and 28 thrower throws: qpos, qvel [128, ...]."""
     half = N_PARITY // 2
     throws = [cal.free_flight_throws(CFG, seed=1, n=half, spin=False),
               cal.free_flight_throws(CFG, seed=2, n=N_PARITY - half, spin=True),
               cal.table_throws(CFG, seed=4, n=N_TABLE_THROWS)]
     pos, vel, spin, quat = (np.concatenate(x) for x in zip(*throws))
-    return cal.ball_states(CFG, pos, vel, spin, quat)
+    return Flights(*cal.ball_states(CFG, pos, vel, spin, quat))
 
 
-IMPACT_PARTS, IMPACT_QPOS, IMPACT_QVEL, NET_SIDE = _impact_experiments()
-FLIGHT_QPOS, FLIGHT_QVEL = _flight_experiments()
+# Built on first use, not at import: every xdist worker imports every module to collect it, and
+# the throws' solve compiles (~17 s on a 2-core CI machine) in each of them.
+impact_experiments = functools.cache(_impact_experiments)
+flight_experiments = functools.cache(_flight_experiments)
 
 
 @pytest.fixture(scope="module")
@@ -76,9 +93,9 @@ def impacts(physics):
 
     def get(name):
         if name not in cache:
-            ball, paddle = cal.ball_trajectories(physics[name], IMPACT_QPOS, IMPACT_QVEL,
-                                                 cal.IMPACT_CONTROL_STEPS)
-            cache[name] = {k: (ball[s], paddle[s]) for k, (_, s) in IMPACT_PARTS.items()}
+            ex = impact_experiments()
+            ball, paddle = cal.ball_trajectories(physics[name], ex.qpos, ex.qvel, cal.IMPACT_CONTROL_STEPS)
+            cache[name] = {k: (ball[s], paddle[s]) for k, (_, s) in impact_experiments().parts.items()}
         return cache[name]
     return get
 
@@ -90,13 +107,14 @@ def flights(physics):
 
     def get(name):
         if name not in cache:
-            cache[name] = cal.ball_trajectories(physics[name], FLIGHT_QPOS, FLIGHT_QVEL, FLIGHT_STEPS)[0]
+            ex = flight_experiments()
+            cache[name] = cal.ball_trajectories(physics[name], ex.qpos, ex.qvel, FLIGHT_STEPS)[0]
         return cache[name]
     return get
 
 
 def _outcome(impacts, backend, name):
-    surface = IMPACT_PARTS[name][0]
+    surface = impact_experiments().parts[name][0]
     return cal.impact_outcome(CFG, surface, *impacts(backend)[name])
 
 
@@ -137,13 +155,13 @@ def test_air_forces_mjx_matches_mujoco_ellipsoid_model_within_1cm_after_1s(fligh
     # The test can see what it claims to check: without air the same throws end far away, and
     # the spin throws without their spin (no Magnus) end far away too.
     t = np.arange(1, c.shape[1] + 1) * CFG.physics_dt
-    p0, v0 = FLIGHT_QPOS[:N_PARITY, :3], FLIGHT_QVEL[:N_PARITY, :3]
+    p0, v0 = flight_experiments().qpos[:N_PARITY, :3], flight_experiments().qvel[:N_PARITY, :3]
     vacuum = p0 + v0 * t[-1] + np.array([0, 0, -9.81 / 2]) * t[-1] ** 2
     assert np.linalg.norm(vacuum - c[:, -1], axis=-1).min() > 0.1
     spin = slice(N_PARITY // 2, N_PARITY)
-    qvel = FLIGHT_QVEL[spin].copy()
+    qvel = flight_experiments().qvel[spin].copy()
     qvel[:, 3:6] = 0.0
-    no_magnus = cal.ball_trajectories(physics["c"], FLIGHT_QPOS[spin], qvel, FLIGHT_STEPS)[0][:, -1, :3]
+    no_magnus = cal.ball_trajectories(physics["c"], flight_experiments().qpos[spin], qvel, FLIGHT_STEPS)[0][:, -1, :3]
     assert np.median(np.linalg.norm(no_magnus - c[spin, -1], axis=-1)) > 0.1
 
 
@@ -186,5 +204,5 @@ def test_slower_impacts_never_reach_the_mid_plane(impacts, backend):
 @pytest.mark.parametrize("backend", ["c", "mjx"])
 def test_net_never_lets_a_ball_through(impacts, backend):
     ball, _ = impacts(backend)["net_throws"]
-    passed = cal.net_passes(ball, NET_SIDE)
+    passed = cal.net_passes(ball, impact_experiments().net_side)
     assert not passed.any(), f"{passed.sum()} of {len(passed)} net throws passed through"
