@@ -189,6 +189,44 @@ def _record(cfg: World, lay: env.Layout, states: env.State, frames, vels, action
         launch_spin=states.launch[:, 6:9], aim=states.aim)
 
 
+@functools.cache
+def _primitives(cfg: World, lay: env.Layout) -> tuple:
+    """(reset, observe, command, controls, advance) batched over throws, jitted where they run
+    alone: one set per world, shared by every Backend of it, so that a new Backend (one per
+    evaluation, say) runs what an earlier one traced and compiled."""
+    return (jax.jit(jax.vmap(functools.partial(env.reset, cfg, lay))),
+            jax.vmap(functools.partial(env.observe, cfg, lay)),
+            jax.vmap(functools.partial(env.command, cfg)),
+            jax.jit(jax.vmap(functools.partial(env.controls, cfg))),
+            jax.jit(jax.vmap(functools.partial(env.advance, cfg, lay))))
+
+
+class _Recent(dict):
+    """A dict that keeps its `size` most recently used entries: compiled rollouts, keyed by the
+    policy they play (a policy wrapped anew for each round would otherwise pile them up)."""
+
+    def __init__(self, size: int):
+        super().__init__()
+        self.size = size
+
+    def __getitem__(self, key):
+        value = super().pop(key)
+        super().__setitem__(key, value)      # most recent last
+        return value
+
+    def __setitem__(self, key, value):
+        super().pop(key, None)
+        super().__setitem__(key, value)
+        while len(self) > self.size:
+            del self[next(iter(self))]
+
+
+@functools.cache
+def _rollouts(cfg: World, lay: env.Layout) -> _Recent:
+    """The compiled rollouts of one world, shared by its Backends (see _primitives)."""
+    return _Recent(16)
+
+
 class Backend:
     """reset/step/rollout for a batch of throws on one physics backend."""
 
@@ -199,13 +237,8 @@ class Backend:
         self.cfg, self.name = cfg, name
         self.physics = MjxPhysics(cfg) if self.kind.traceable else CPhysics(cfg, nthread)
         self.lay = self.physics.lay
-        cfg_, lay = cfg, self.lay
-        self._reset = jax.jit(jax.vmap(functools.partial(env.reset, cfg_, lay)))
-        self._observe = jax.vmap(functools.partial(env.observe, cfg_, lay))
-        self._command = jax.vmap(functools.partial(env.command, cfg_))
-        self._controls = jax.jit(jax.vmap(functools.partial(env.controls, cfg_)))
-        self._advance = jax.jit(jax.vmap(functools.partial(env.advance, cfg_, lay)))
-        self._rollouts = {}
+        self._reset, self._observe, self._command, self._controls, self._advance = _primitives(cfg, self.lay)
+        self._rollouts = _rollouts(cfg, self.lay)
 
     # -- batched primitives ---------------------------------------------------------------
     def reset(self, key, throws, goals) -> env.State:
