@@ -194,6 +194,30 @@ def test_determinism_per_seed(c_backend):
     assert not np.array_equal(a.obs[:, 0, :8], c.obs[:, 0, :8])  # a different seed perturbs home
 
 
+def test_a_new_backend_of_the_same_world_runs_what_the_first_compiled(c_backend, caplog):
+    """Backends of one world share their jitted steps and compiled rollouts: an evaluation makes a
+    Backend per call, and each one traced and compiled reset, act and advance again. A second
+    Backend's rollout of the same policy compiles nothing and plays the same numbers."""
+    import logging
+    policy, goals = open_loop_policy(), np.zeros((2, 2))
+    th = hand_throws([[1.7, 0.2, 0.95]] * 2, [[-6.5, -0.2, 1.0]] * 2)
+    a = c_backend.rollout(policy, None, jax.random.PRNGKey(3), th, goals, horizon=20)
+    with caplog.at_level(logging.DEBUG, logger="jax._src.interpreters.pxla"):
+        b = backends.Backend(CFG, "c").rollout(policy, None, jax.random.PRNGKey(3), th, goals, horizon=20)
+    compiled = [r.getMessage()[:80] for r in caplog.records if r.getMessage().startswith("Compiling ")]
+    assert compiled == []
+    for f in record.Trajectories._fields:
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
+
+
+def test_compiled_rollouts_kept_are_the_most_recently_used():
+    kept = backends._Recent(2)
+    kept["a"], kept["b"] = 1, 2
+    assert kept["a"] == 1          # "a" used last: "b" is the oldest now
+    kept["c"] = 3
+    assert sorted(kept) == ["a", "c"]
+
+
 def paddle_pose_at_reset(backend, key, n):
     """Blade centre and normal [n, 3] of the perturbed home poses `backend.rollout(key)` resets to."""
     k_reset = jax.random.split(key, 3)[0]
