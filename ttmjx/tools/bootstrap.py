@@ -18,6 +18,7 @@ demonstration with its landing, as for every other source.
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 
@@ -110,7 +111,12 @@ def goal_policy(cfg: World, meta: dict) -> backends.Policy:
     """The bootstrap policy for ONE throw (params: the tensors of `load_weights`, as JAX
     arrays): per episode a goal uniform over the opponent's half, written into the last
     `frame_stack` frames it sees; the mean of its members' joint targets."""
-    layers, k, o = meta["layers"], meta["frame_stack"], meta["obs_size"]
+    return _goal_policy(cfg, int(meta["layers"]), int(meta["frame_stack"]), int(meta["obs_size"]))
+
+
+@functools.lru_cache(maxsize=None)
+def _goal_policy(cfg: World, layers: int, k: int, o: int) -> backends.Policy:
+    """goal_policy, one object per configuration: compiled rollouts are kept by the policy."""
     if cfg.frame_stack < k:
         raise ValueError(f"the bootstrap policy stacks {k} frames; the world keeps {cfg.frame_stack} "
                          f"(World.frame_stack)")

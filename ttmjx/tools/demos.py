@@ -27,6 +27,7 @@ landed.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import subprocess
 import sys
 import time
@@ -107,6 +108,7 @@ class Perturbation:
         return jnp.zeros(8).at[jnp.array(self.joints)].set(u * jnp.array(self.offset))
 
 
+@functools.lru_cache(maxsize=64)
 def perturbed(policy: backends.Policy, pert: Perturbation, hidden: bool = False) -> backends.Policy:
     """`policy` with `pert`'s per-episode offset added to every command it sends. The offset is
     drawn at the episode's start and carried; the environment clips the result (ranges, speed).
@@ -118,7 +120,8 @@ def perturbed(policy: backends.Policy, pert: Perturbation, hidden: bool = False)
     stroke and the executed one is that stroke moved by the offset. A learned policy whose
     targets follow its observed joints (the imitation policies of `paper`) integrates an offset
     it can see into a drift (docs/DESIGN.md, "Measurements behind the code"). The record keeps
-    the TRUE joints and the executed commands."""
+    the TRUE joints and the executed commands. One object per (policy, pert, hidden): compiled
+    rollouts are kept by the policy they play."""
     def init(params, key):
         k_policy, k_offset = jax.random.split(key)
         return policy.init(params, k_policy), pert.draw(k_offset)

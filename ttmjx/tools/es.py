@@ -56,6 +56,7 @@ ttmjx/tools/assets/ (es_policy.npz, es_policy.json).
 """
 from __future__ import annotations
 
+import functools
 import io
 import json
 import math
@@ -146,8 +147,10 @@ def mlp_action(params, obs):
     return params["home"] + params["action_scale"] * jnp.tanh(h @ params["W2"] + params["b2"])
 
 
+@functools.lru_cache(maxsize=None)
 def mlp_policy() -> backends.Policy:
-    """The ES policy for ONE throw; params from `init_params` / `load_policy`. Stateless."""
+    """The ES policy for ONE throw; params from `init_params` / `load_policy`. Stateless. One
+    object: compiled rollouts are kept by the policy they play."""
     return backends.Policy(init=lambda params, key: jnp.zeros(()),
                            apply=lambda params, carry, obs, key: (carry, mlp_action(params, obs)))
 

@@ -41,6 +41,7 @@ and, jit-compiled and vmapped, between the MuJoCo C backend's physics calls.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import math
 from typing import NamedTuple
@@ -773,8 +774,10 @@ def striker_step(cfg: World, scfg: StrikerConfig, s: StrikerState, obs: Obs):
                       q_seed=q_seed, ik_age=ik_age), u
 
 
+@functools.lru_cache(maxsize=None)
 def striker_policy(cfg: World, scfg: StrikerConfig = StrikerConfig()) -> backends.Policy:
-    """The scripted demonstrator as a Policy for ONE throw (params unused, pass None)."""
+    """The scripted demonstrator as a Policy for ONE throw (params unused, pass None). One object
+    per configuration: compiled rollouts are kept by the policy they play."""
     return backends.Policy(init=lambda params, key: draw_episode(cfg, scfg, key),
                            apply=lambda params, carry, obs, key: striker_step(cfg, scfg, carry, obs))
 
