@@ -203,7 +203,8 @@ def _primitives(cfg: World, lay: env.Layout) -> tuple:
 
 class _Recent(dict):
     """A dict that keeps its `size` most recently used entries: compiled rollouts, keyed by the
-    policy they play (a policy wrapped anew for each round would otherwise pile them up)."""
+    policy they play (a policy wrapped anew for each round would otherwise pile them up). For
+    one thread: a read moves the entry to the end."""
 
     def __init__(self, size: int):
         super().__init__()
