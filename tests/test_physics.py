@@ -44,7 +44,10 @@ class Flights(NamedTuple):
     qvel: np.ndarray
 
 
-def _impact_experiments() -> Impacts:
+# The experiments are built on first use, not at import: every xdist worker imports every module
+# to collect it, and the throws' solve would compile in each of them.
+@functools.cache
+def impact_experiments() -> Impacts:
     """All impact experiments in one batch: {name: (surface, slice)} and qpos, qvel, side."""
     parts, qs, vs = {}, [], []
     ph = cal.arrival_phases(PHASES)
@@ -63,7 +66,8 @@ def _impact_experiments() -> Impacts:
     return Impacts(parts, np.concatenate(qs), np.concatenate(vs), side)
 
 
-def _flight_experiments() -> Flights:
+@functools.cache
+def flight_experiments() -> Flights:
     """100 free-flight throws (half with spin) and 28 thrower throws: qpos, qvel [128, ...]."""
     half = N_PARITY // 2
     throws = [cal.free_flight_throws(CFG, seed=1, n=half, spin=False),
@@ -73,10 +77,6 @@ def _flight_experiments() -> Flights:
     return Flights(*cal.ball_states(CFG, pos, vel, spin, quat))
 
 
-# Built on first use, not at import: every xdist worker imports every module to collect it, and
-# the throws' solve compiles (~17 s on a 2-core CI machine) in each of them.
-impact_experiments = functools.cache(_impact_experiments)
-flight_experiments = functools.cache(_flight_experiments)
 
 
 @pytest.fixture(scope="module")
