@@ -19,17 +19,17 @@ one() {  # name, cores, flags...
   local name=$1 cores=$2; shift 2
   local d=$W/$name
   echo "=== $name: train $* $(date +%T)" >>"$OUT/log.txt"
-  taskset -c "$cores" timeout -s TERM "$TRAIN_LIMIT" python3 -m ttmjx.cli train --preset "$PRESET" --seed "$SEED" \
+  taskset -c "$cores" timeout -s TERM "$TRAIN_LIMIT" python3 -m ttmjx train --preset "$PRESET" --seed "$SEED" \
     --run-dir "$d/run" "$@" --json >"$d/train.json" 2>"$d/train.err"
   echo "=== $name: trained rc=$? $(date +%T)" >>"$OUT/log.txt"
-  taskset -c "$cores" python3 -m ttmjx.cli export "$d/run" --out "$d/ex" >"$d/export.txt" 2>&1 || return
-  taskset -c "$cores" python3 -m ttmjx.cli robot run --policy "$d/ex" --station sim --goals uniform --n "$N" \
+  taskset -c "$cores" python3 -m ttmjx export "$d/run" --out "$d/ex" >"$d/export.txt" 2>&1 || return
+  taskset -c "$cores" python3 -m ttmjx robot run --policy "$d/ex" --station sim --goals uniform --n "$N" \
     --seed 5 --json >"$d/robot_run.json" 2>"$d/robot_run.err" &
   if [[ $SWEEP == 1 ]]; then
     local c0=${cores%%,*} c1=${cores##*,}
-    taskset -c "$c0" python3 -m ttmjx.cli robot sweep --policy "$d/ex" --out "$d/sweep_ball" --n "$N" --max-ms 50 \
+    taskset -c "$c0" python3 -m ttmjx robot sweep --policy "$d/ex" --out "$d/sweep_ball" --n "$N" --max-ms 50 \
       --points 3 --series ball --json >"$d/sweep_ball.json" 2>"$d/sweep_ball.err" &
-    taskset -c "$c1" python3 -m ttmjx.cli robot sweep --policy "$d/ex" --out "$d/sweep_action" --n "$N" --max-ms 20 \
+    taskset -c "$c1" python3 -m ttmjx robot sweep --policy "$d/ex" --out "$d/sweep_action" --n "$N" --max-ms 20 \
       --points 3 --series action --json >"$d/sweep_action.json" 2>"$d/sweep_action.err" &
   fi
   wait

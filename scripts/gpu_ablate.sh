@@ -10,7 +10,7 @@ OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 secs=$1; name=$2; traj=$3; shift 3
 dir=/tmp/ablations/$name-full
 for cells in "$@"; do
-  ( timeout -s TERM "$secs" python3 -m ttmjx.cli ablate "$name" --scale full --seeds 5 --cells "$cells" \
+  ( timeout -s TERM "$secs" python3 -m ttmjx ablate "$name" --scale full --seeds 5 --cells "$cells" \
       --trajectories "$traj" --out "$dir" 2>&1 | tr '\r' '\n' | grep -v "traj/s\|throw/s\|^\s*$" > "$OUT/${name}_${cells//[:,]/_}.log" ) &
 done
 wait

@@ -34,7 +34,7 @@ one() {
   local flags_var="${m^^}_FLAGS"; local flags=${!flags_var:-}
   echo "=== baseline $m seeds $s limit $lim $flags $(date +%T)" | tee -a "$OUT/log.txt"
   /usr/bin/time -f "wall %e s, peak rss %M kB" timeout -s TERM "$lim" \
-    python3 -m ttmjx.cli baseline "$m" --scale full --seeds "$s" --out "$B/table1" $flags 2>&1 \
+    python3 -m ttmjx baseline "$m" --scale full --seeds "$s" --out "$B/table1" $flags 2>&1 \
     | tr '\r' '\n' | grep -v "^\s*$" | tee -a "$OUT/log.txt" "$OUT/log_$m.txt" | grep -E "^\[|wall|error" | tail -20
 }
 pids=()

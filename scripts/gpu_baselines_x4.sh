@@ -29,7 +29,7 @@ lane() {   # the specs of one lane, one after another, each stopped at the call'
     (( left > 30 )) || { echo "=== $name: no time left" | tee -a "$OUT/log.txt"; continue; }
     echo "=== gpu $gpu $name ${flags//+/ } limit ${left}s $(date +%T)" | tee -a "$OUT/log.txt"
     CUDA_VISIBLE_DEVICES=$gpu TTMJX_JAX_CACHE=/tmp/jaxcache$gpu /usr/bin/time -f "$name wall %e s, peak rss %M kB" \
-      timeout -s TERM "$left" python3 -m ttmjx.cli baseline "$m" --scale full --seed "$first" --seeds "$n" \
+      timeout -s TERM "$left" python3 -m ttmjx baseline "$m" --scale full --seed "$first" --seeds "$n" \
       --out "$B/$name" ${flags//+/ } 2>&1 | tr '\r' '\n' | grep -v "^\s*$" > "$B/$name.log"
     grep -E "wall|rror" "$B/$name.log" | tail -3 | tee -a "$OUT/log.txt"
   done

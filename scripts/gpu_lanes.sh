@@ -32,7 +32,7 @@ lane() {   # lane GPU SPEC...: the specs one after another on that GPU
     IFS=: read -r _ name args <<< "$spec"
     echo "=== gpu $gpu $name: ttmjx ${args//+/ } $(date +%T)" >> "$T/log.txt"
     CUDA_VISIBLE_DEVICES=$gpu TTMJX_JAX_CACHE=/tmp/jaxcache$gpu /usr/bin/time -f "$name wall %e s, peak rss %M kB" \
-      python3 -m ttmjx.cli ${args//+/ } 2>&1 | stdbuf -oL tr '\r' '\n' | grep --line-buffered -v '^\s*$' > "$T/$name.log"
+      python3 -m ttmjx ${args//+/ } 2>&1 | stdbuf -oL tr '\r' '\n' | grep --line-buffered -v '^\s*$' > "$T/$name.log"
     echo "=== $name ended $(date +%T): $(grep -E 'wall|rror' "$T/$name.log" | tail -2 | tr '\n' ' ')" >> "$T/log.txt"
     [[ $args == ablate+* ]] && edges "$gpu" "$name" "$args"
   done
@@ -46,7 +46,7 @@ edges() {   # edges GPU NAME ARGS: each finished cell of an ablation lane on the
   for run in "$out"/runs/*; do
     c=$(basename "$run")
     [[ -f $out/results/$c.json && ! -s $T/edges/$abl-$c.json ]] || continue
-    CUDA_VISIBLE_DEVICES=$gpu TTMJX_JAX_CACHE=/tmp/jaxcache$gpu python3 -m ttmjx.cli eval "$run" \
+    CUDA_VISIBLE_DEVICES=$gpu TTMJX_JAX_CACHE=/tmp/jaxcache$gpu python3 -m ttmjx eval "$run" \
       --goals eval/goals/edges_net.csv --json 2>>"$T/$name.log" | tail -1 > "$T/edges/$abl-$c.json"
   done
   echo "=== $name: edges-and-net evaluations $(date +%T): $(ls "$T/edges" | grep -c "^$abl-")" >> "$T/log.txt"

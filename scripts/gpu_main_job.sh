@@ -23,13 +23,13 @@ pack() {
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader 2>/dev/null | tee -a "$OUT/log.txt"
 log "train ${TRAIN_ARGS:-}"
 # shellcheck disable=SC2086
-/usr/bin/time -f "train wall %e s" timeout -s TERM "$TRAIN_LIMIT" python3 -m ttmjx.cli train --run-dir "$R/run" \
+/usr/bin/time -f "train wall %e s" timeout -s TERM "$TRAIN_LIMIT" python3 -m ttmjx train --run-dir "$R/run" \
   ${TRAIN_ARGS:-} --json >"$R/res/train.json" 2>"$R/res/train.err"
 log "trained rc=$?"; tail -1 "$R/res/train.err" | tee -a "$OUT/log.txt"
-python3 -m ttmjx.cli export "$R/run" --out "$R/ex" >"$R/res/export.txt" 2>&1
+python3 -m ttmjx export "$R/run" --out "$R/ex" >"$R/res/export.txt" 2>&1
 log "exported rc=$?"; tail -1 "$R/res/export.txt" | tee -a "$OUT/log.txt"
 for k in $(seq 0 $((SESSIONS - 1))); do
-  JAX_PLATFORMS=cpu CUDA_VISIBLE_DEVICES= taskset -c $((2 * k)),$((2 * k + 1)) python3 -m ttmjx.cli robot run \
+  JAX_PLATFORMS=cpu CUDA_VISIBLE_DEVICES= taskset -c $((2 * k)),$((2 * k + 1)) python3 -m ttmjx robot run \
     --policy "$R/ex" --station sim --goals uniform --n "$N" --seed $((50 + k)) --json \
     >"$R/res/robot_run_$k.json" 2>"$R/res/robot_run_$k.err" &
 done

@@ -9,7 +9,7 @@ export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
 export TTMJX_JAX_CACHE=$PWD/.jax_cache
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee "$OUT/gpu.txt"
-tt() { python3 -m ttmjx.cli "$@"; }
+tt() { python3 -m ttmjx "$@"; }
 for step in "$@"; do
   echo "=== $step $(date +%T)"
   case "$step" in

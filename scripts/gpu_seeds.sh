@@ -12,13 +12,13 @@ nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee "$OUT/gpu.t
 while [[ $# -gt 0 && $1 != "--" ]]; do
   p=${1%%:*}; s=${1#*:}; shift
   echo "=== bench $p seeds $s $(date +%T)" | tee -a "$OUT/log.txt"
-  timeout "$LIMIT" python3 -m ttmjx.cli bench --train "$p" --seeds "$s" --reps 1 --json 2>>"$OUT/log.txt" \
+  timeout "$LIMIT" python3 -m ttmjx bench --train "$p" --seeds "$s" --reps 1 --json 2>>"$OUT/log.txt" \
     | tail -1 | tee "$OUT/bench_${p}_$s.json"
 done
 [[ ${1:-} == "--" ]] && shift
 for cmd in "$@"; do
   echo "=== ttmjx $cmd $(date +%T)" | tee -a "$OUT/log.txt"
-  /usr/bin/time -f "wall %e s, peak rss %M kB" timeout -s TERM "$LIMIT" python3 -m ttmjx.cli $cmd 2>&1 \
+  /usr/bin/time -f "wall %e s, peak rss %M kB" timeout -s TERM "$LIMIT" python3 -m ttmjx $cmd 2>&1 \
     | tr '\r' '\n' | grep -v "traj/s\|throw/s\|^\s*$" | tee -a "$OUT/log.txt" | tail -3
 done
 echo "=== done $(date +%T)" | tee -a "$OUT/log.txt"

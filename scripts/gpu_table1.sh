@@ -24,7 +24,7 @@ if [[ $mode == start ]]; then
   command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee -a "$T/log.txt"
   traj=$1; shift
   for a in $ARMS; do
-    setsid bash -c "cd $PWD; /usr/bin/time -f 'wall %e s, peak rss %M kB' python3 -m ttmjx.cli ablate practice \
+    setsid bash -c "cd $PWD; /usr/bin/time -f 'wall %e s, peak rss %M kB' python3 -m ttmjx ablate practice \
       --scale $SCALE --seeds ${SEEDS:-5} --cells $a --trajectories $traj --out $T/table 2>&1 | tr '\r' '\n' \
       | grep -v 'traj/s\|throw/s\|^\s*$' > $T/$a.log; touch $T/$a.done" </dev/null >/dev/null 2>&1 &
     echo "started $a $(date +%T)" | tee -a "$T/log.txt"
@@ -40,7 +40,7 @@ if [[ -f $T/goalseye.done && -f $T/lfp-equal-updates.done && ! -f $T/edges.done 
   echo "=== edges evaluation $(date +%T)" | tee -a "$T/log.txt"
   for run in "$T"/table/runs/*-seed*; do
     c=$(basename "$run")
-    [[ -f $T/edges/$c.json ]] || python3 -m ttmjx.cli eval "$run" --goals eval/goals/edges_net.csv --json \
+    [[ -f $T/edges/$c.json ]] || python3 -m ttmjx eval "$run" --goals eval/goals/edges_net.csv --json \
       2>>"$T/log.txt" | tail -1 > "$T/edges/$c.json"
     (( SECONDS < t_end + 120 )) || break
   done

@@ -31,7 +31,7 @@ edges() {   # edges GPU JOB ABLATION CELLS: every finished seed of the job's cel
   for cell in ${cells//,/ }; do
     for run in "$T/$abl/runs/$cell-seed"*; do
       local c; c=$(basename "$run")
-      [[ -f $T/edges/$abl-$c.json ]] || CUDA_VISIBLE_DEVICES=$gpu python3 -m ttmjx.cli eval "$run" \
+      [[ -f $T/edges/$abl-$c.json ]] || CUDA_VISIBLE_DEVICES=$gpu python3 -m ttmjx eval "$run" \
         --goals eval/goals/edges_net.csv --json 2>>"$T/$job.log" | tail -1 > "$T/edges/$abl-$c.json"
     done
   done
@@ -47,7 +47,7 @@ if [[ $mode == start ]]; then
   for spec in $JOBS; do
     IFS=: read -r gpu job abl cells <<< "$spec"
     setsid bash -c "cd $PWD; source scripts/gpu_table1_x4.sh lib; export CUDA_VISIBLE_DEVICES=$gpu
-      /usr/bin/time -f 'wall %e s, peak rss %M kB' $(cores $((gpu * 4)) $((gpu * 4 + 3))) python3 -m ttmjx.cli ablate $abl \
+      /usr/bin/time -f 'wall %e s, peak rss %M kB' $(cores $((gpu * 4)) $((gpu * 4 + 3))) python3 -m ttmjx ablate $abl \
         --scale $SCALE --seeds $SEEDS --cells $cells --trajectories $TRAJ ${SET:+--set $SET} --out $T/$abl 2>&1 | stdbuf -oL tr '\r' '\n' \
         | grep --line-buffered -v 'traj/s\|throw/s\|absl\|^\s*$' > $T/$job.log
       touch $T/$job.done; edges $gpu $job $abl $cells; touch $T/$job.edges" </dev/null >/dev/null 2>&1 &
@@ -55,7 +55,7 @@ if [[ $mode == start ]]; then
   done
   # The paper's procedure on any-ball throws, from scratch, on the remaining cores (JAX on the CPU).
   (( BOOT )) && setsid bash -c "cd $PWD; CUDA_VISIBLE_DEVICES= JAX_PLATFORMS=cpu /usr/bin/time -f 'wall %e s' $(cores 16 $(( $(nproc) - 1 ))) \
-    python3 -m ttmjx.cli demos --source paper --rebuild all --distribution any --n 3600 --seed 0 \
+    python3 -m ttmjx demos --source paper --rebuild all --distribution any --n 3600 --seed 0 \
     --out $T/boot_any --json 2>&1 | stdbuf -oL tr '\r' '\n' | grep --line-buffered -v 'absl\|^\s*$' > $T/boot_any.log; touch $T/boot_any.done" \
     </dev/null >/dev/null 2>&1 &
   (( BOOT )) && echo "started boot_any $(date +%T)" | tee -a "$T/log.txt"

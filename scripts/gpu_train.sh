@@ -10,7 +10,7 @@ OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 secs=$1; shift
 for spec in "$@"; do
   name=${spec%%=*}; rest=${spec#*=}; preset=${rest%%:*}; extra=""; [[ $rest == *:* ]] && extra=${rest#*:}
-  ( timeout -s TERM "$secs" python3 -m ttmjx.cli train --preset "$preset" --run-dir "runs/$name" --json $extra 2>&1 \
+  ( timeout -s TERM "$secs" python3 -m ttmjx train --preset "$preset" --run-dir "runs/$name" --json $extra 2>&1 \
       | tr '\r' '\n' | grep -v "traj/s\|^\s*$" > "$OUT/$name.log"
     for f in metrics.jsonl learning_curve.png config.json; do cp "runs/$name/$f" "$OUT/${name}_$f"; done ) &
 done

@@ -139,7 +139,7 @@ def test_bad_input_is_one_line_and_changes_nothing(name, argv, scratch):
     assert listing(scratch) == before, sorted(listing(scratch) - before)
 
 
-# -- issue 26: the message names the culprit -------------------------------------------------
+# -- the message names the culprit ---------------------------------------------------------
 TRAIN = "train --preset tiny --run-dir {tmp}/r --max-iterations 1"
 NAMED = [   # (argv, exit code, substrings the one line must hold)
     # physics and geometry that failed inside MuJoCo's XML compiler or with a ZeroDivisionError
@@ -332,7 +332,7 @@ ENV = {**os.environ, "PYTHONPATH": ROOT, "JAX_PLATFORMS": "cpu"}
 
 def command(*args) -> list[str]:
     """`ttmjx ARGS` as argv (the console script's entry, ttmjx/entry.py)."""
-    return [sys.executable, "-m", "ttmjx.entry", *map(str, args)]
+    return [sys.executable, "-m", "ttmjx", *map(str, args)]
 
 
 def run(*args, timeout=300, **kw) -> subprocess.CompletedProcess:

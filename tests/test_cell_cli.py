@@ -1,5 +1,5 @@
 """`ttmjx robot run --station cell --config cell.toml` (the command users are told to use for the
-real cell, issue 26) plays an export through the drivers against `ttmjx robot serve` over
+real cell) plays an export through the drivers against `ttmjx robot serve` over
 loopback sockets, and writes its episode logs."""
 import json
 import os
@@ -20,7 +20,7 @@ RUN = os.path.join(ROOT, "tests", "data", "tiny_run_v0")
 
 def ttmjx(*args, timeout=300):
     env = {**os.environ, "PYTHONPATH": ROOT, "JAX_PLATFORMS": "cpu"}
-    return subprocess.run([sys.executable, "-m", "ttmjx.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "ttmjx", *args], capture_output=True, text=True,
                           timeout=timeout, env=env)
 
 

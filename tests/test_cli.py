@@ -21,7 +21,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def ttmjx(*args, timeout=600):
-    return subprocess.run([sys.executable, "-m", "ttmjx.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "ttmjx", *args], capture_output=True, text=True,
                           timeout=timeout, env=dict(os.environ, PYTHONUNBUFFERED="1"))
 
 
@@ -59,7 +59,7 @@ def test_bench_c_reports_rates_against_the_raw_rollout_baseline():
 
 def test_demos_dataset_plot_and_no_overwrite(tmp_path, capsys):
     out = str(tmp_path / "d")
-    # The striker (the default before issue 22; `paper` in tests/test_paper_bootstrap.py).
+    # The striker (the paper's bootstrap is `paper`: tests/test_paper_bootstrap.py).
     res = here(capsys, "demos", "--source", "striker", "--distribution", "narrow", "--n", "24", "--out", out, "--json")
     assert set(res) == {"n", "hit_rate", "return_rate", "coverage", "area_within_30cm", "landing_std_x",
                         "landing_std_y", "seconds"} and res["n"] == 24

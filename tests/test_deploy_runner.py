@@ -243,7 +243,8 @@ NO_SIMULATOR = """
 import importlib.abc, sys
 class NoSimulator(importlib.abc.MetaPathFinder):
     def find_spec(self, name, path, target=None):
-        if name.split(".")[0] in ("jax", "jaxlib", "mujoco", "flax", "optax", "orbax", "brax", "matplotlib"):
+        if name.split(".")[0] in ("jax", "jaxlib", "mujoco", "flax", "optax", "orbax", "brax", "matplotlib",
+                                  "tensorboardX", "tqdm"):
             raise ImportError(f"No module named {name!r} (a robot's computer)", name=name)
 sys.meta_path.insert(0, NoSimulator())
 sys.argv = ["ttmjx", *sys.argv[1:]]
@@ -259,7 +260,12 @@ def ttmjx_without_simulator(*args, tmp_path) -> subprocess.CompletedProcess:
 
 def test_the_robot_side_runs_where_jax_and_mujoco_cannot_be_imported(tmp_path):
     """`ttmjx robot run` on the fake station and `ttmjx robot bench` through the console script's
-    entry on a machine without the simulator's packages; a command that needs them says so."""
+    entry on a machine without the simulator's packages; a command that needs them says so, and
+    `ttmjx --help` lists what this install runs and how to get the rest."""
+    for argv in (["--help"], ["robot", "-h"]):
+        done = ttmjx_without_simulator(*argv, tmp_path=tmp_path)
+        assert done.returncode == 0 and "pip install 'ttmjx[sim]'" in done.stdout, (argv, done.stdout, done.stderr)
+        assert "robot run" in done.stdout and "robot bench" in done.stdout and "train " not in done.stdout, done.stdout
     out = tmp_path / "logs"
     done = ttmjx_without_simulator("robot", "run", "--station", "fake", "--goals", "five", "--out", str(out), "--json",
                                    tmp_path=tmp_path)
@@ -761,8 +767,8 @@ class _LastTicksAway:
 @pytest.mark.parametrize("settle_s, held", [(0.0, True), (RunnerConfig().command_settle_s, False)])
 def test_homing_after_an_episode_waits_for_the_delayed_last_commands(settle_s, held):
     """With a command delay the robot is still where it was when the episode's last commands
-    leave; homing took it as settled far from the last command (a false joint_mismatch, HOLD:
-    issue #23's sweep); it now reads the joints command_settle_s after the last command."""
+    leave; homing took it as settled far from the last command (a false joint_mismatch, HOLD,
+    seen in a timing sweep); it now reads the joints command_settle_s after the last command."""
     contract = dataclasses.replace(CONTRACT, control_hz=100.0)
     clock = FakeClock(start=10.0)
     robot, tracker = _DelayedRobot(clock, contract), FakeTracker(clock)

@@ -7,7 +7,6 @@ through its launcher between sessions); the policy is the scripted FollowBallPol
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import socket
 import subprocess
@@ -213,7 +212,7 @@ def test_ports_in_use_and_unreachable_drive_are_one_line_errors(tmp_path):
     listen.bind(("127.0.0.1", cfg.gantry.port))
     listen.listen()
     try:
-        r = subprocess.run([sys.executable, "-m", "ttmjx.cli", "robot", "serve", "--config", str(path)],
+        r = subprocess.run([sys.executable, "-m", "ttmjx", "robot", "serve", "--config", str(path)],
                            capture_output=True, text=True, env=env, timeout=120)
     finally:
         listen.close()

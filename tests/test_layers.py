@@ -8,10 +8,12 @@ import os
 
 import pytest
 
+from ttmjx.entry import SIMULATOR_PACKAGES
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # The layers, lowest first. A module may import its own layer and the layers below it.
 LAYERS = ["ttmjx.world", "ttmjx.commandline", "ttmjx.tools", "models", "training", "eval", "deploy.robot",
-          "deploy.sim", "ttmjx.cli", "ttmjx.entry"]
+          "deploy.sim", "ttmjx.cli", "ttmjx.entry", "ttmjx.__main__"]
 PACKAGES = ("ttmjx", "models", "training", "eval", "deploy")
 
 
@@ -86,8 +88,8 @@ def test_the_checker_sees_an_upward_import(tmp_path):
 
 # -- the robot side ---------------------------------------------------------------------------
 # What a robot's computer does not install, and the project's layers it must not reach.
-ROBOT_FORBIDDEN = ("jax", "jaxlib", "mujoco", "flax", "optax", "orbax", "brax", "torch",
-                   "ttmjx.tools", "ttmjx.cli", "models", "training", "eval", "deploy.sim")
+ROBOT_FORBIDDEN = SIMULATOR_PACKAGES + ("torch", "ttmjx.tools", "ttmjx.cli", "models", "training", "eval",
+                                        "deploy.sim")
 PATHS = dict(MODULES)
 
 

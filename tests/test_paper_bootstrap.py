@@ -141,14 +141,14 @@ def test_cli_refuses_a_rebuild_too_small_for_es(tmp_path):
     import subprocess
     import sys
     out = tmp_path / "d"
-    r = subprocess.run([sys.executable, "-m", "ttmjx.cli", "demos", "--source", "paper", "--rebuild", "all",
+    r = subprocess.run([sys.executable, "-m", "ttmjx", "demos", "--source", "paper", "--rebuild", "all",
                         "--es-generations", "130", "5", "--out", str(out)], capture_output=True, text=True)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "5 generations x 48 x 8 throws = 1920 episodes" in r.stderr and not out.exists()
-    r = subprocess.run([sys.executable, "-m", "ttmjx.cli", "demos", "--source", "es", "--rebuild", "stages",
+    r = subprocess.run([sys.executable, "-m", "ttmjx", "demos", "--source", "es", "--rebuild", "stages",
                         "--out", str(out)], capture_output=True, text=True)
     assert r.returncode == 2 and "--rebuild stages builds the paper procedure" in r.stderr and not out.exists()
-    r = subprocess.run([sys.executable, "-m", "ttmjx.cli", "demos", "--rebuild", "stages", "--distribution", "varied",
+    r = subprocess.run([sys.executable, "-m", "ttmjx", "demos", "--rebuild", "stages", "--distribution", "varied",
                         "--out", str(out)], capture_output=True, text=True)
     assert r.returncode == 2 and "trained on narrow throws, not varied: use --rebuild all" in r.stderr
     assert not out.exists()

@@ -148,7 +148,7 @@ def test_seed_index_picks_a_seed_or_names_the_choice(tmp_path):
 
 @pytest.mark.parametrize("value", ["0", "-2"])
 def test_train_refuses_a_seed_count_below_one_in_one_line(value, tmp_path):
-    p = subprocess.run([sys.executable, "-m", "ttmjx.cli", "train", "--preset", "tiny", "--seeds", value,
+    p = subprocess.run([sys.executable, "-m", "ttmjx", "train", "--preset", "tiny", "--seeds", value,
                         "--run-dir", str(tmp_path / "r")], capture_output=True, text=True, timeout=120)
     assert p.returncode == 2, p.stderr
     assert p.stderr.strip().splitlines() == [f"ttmjx train: error: --seeds {value}: expected between 1 and 1000"]

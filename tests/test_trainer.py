@@ -120,8 +120,8 @@ def test_same_seed_same_numbers_as_before_the_renovation(trained):
     """The metrics of the tiny run equal those recorded with the code before the One-way house
     renovation (tests/data/before_renovation.json; on other processors, their recording of the
     same computation, tests/recorded.py): same losses, practice and evaluation. The
-    success numbers (eval_*, practice_within_*) were re-recorded for the strict metric of issue
-    #11 (the file's "changed" note); strict success never exceeds the old lenient one, and the
+    success numbers (eval_*, practice_within_*) were re-recorded for the strict success metric
+    (the file's "changed" note); strict success never exceeds the old lenient one, and the
     hit rates, kept episodes and losses are the original recording."""
     run_dir, _ = trained
     rows = [json.loads(line) for line in open(os.path.join(run_dir, "metrics.jsonl"))]
@@ -189,7 +189,7 @@ def test_resume_after_interruption_is_bit_exact(trained, demo_dir, tmp_path):
 
 def test_sigterm_saves_a_checkpoint_and_the_run_resumes(demo_dir, tmp_path):
     run_dir = tmp_path / "sig"
-    cmd = [sys.executable, "-m", "ttmjx.cli", "train", "--preset", "tiny", "--run-dir", str(run_dir),
+    cmd = [sys.executable, "-m", "ttmjx", "train", "--preset", "tiny", "--run-dir", str(run_dir),
            "--demo-dir", demo_dir, "--total-trajectories", "2000"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
@@ -243,7 +243,7 @@ def test_eval_cli_reports_json_metrics(trained, capsys):
     main(["eval", str(run_dir), "--goals", "five", "--per-goal", "2", "--json"])
     res5 = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert sorted(res5["per_goal"]) == ["A", "B", "C", "D", "E"] and res5["goals"] == 10
-    bad = subprocess.run([sys.executable, "-m", "ttmjx.cli", "eval", "/nonexistent/run"], capture_output=True,
+    bad = subprocess.run([sys.executable, "-m", "ttmjx", "eval", "/nonexistent/run"], capture_output=True,
                          text=True, timeout=120)
     assert bad.returncode == 2 and "does not exist" in bad.stderr
 
@@ -371,7 +371,7 @@ def test_kill_9_at_random_moments_then_the_same_command_resumes_to_the_same_resu
     command continues, and the end equals the uninterrupted run bit for bit."""
     full_dir, _ = trained
     run_dir = tmp_path / "killed"
-    cmd = [sys.executable, "-m", "ttmjx.cli", "train", "--preset", "tiny", "--run-dir", str(run_dir),
+    cmd = [sys.executable, "-m", "ttmjx", "train", "--preset", "tiny", "--run-dir", str(run_dir),
            "--demo-dir", demo_dir, "--demo-source", "oracle", "--json",
            *(f"--train.{k.replace('_', '-')}={v}" for k, v in RECORDED_PRACTICE.items())]   # the fixture's config
     rng = np.random.default_rng(0)

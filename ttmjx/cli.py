@@ -717,6 +717,3 @@ def prepare() -> None:
 def main(argv: list[str] | None = None) -> None:
     commandline.run(COMMANDS, sys.argv[1:] if argv is None else list(argv), prepare)
 
-
-if __name__ == "__main__":
-    main()

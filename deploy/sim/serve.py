@@ -496,7 +496,7 @@ def serving(config_path: str, *args: str, cpu: int | None = None, env: dict | No
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = {**os.environ, "PYTHONPATH": root, **(env or {})}
     err = tempfile.TemporaryFile("w+")        # not a pipe: a long session's log would fill it
-    proc = subprocess.Popen([sys.executable, "-m", "ttmjx.cli", "robot", "serve", "--config", str(config_path),
+    proc = subprocess.Popen([sys.executable, "-m", "ttmjx", "robot", "serve", "--config", str(config_path),
                              "--json", *args], stdout=subprocess.PIPE, stderr=err, env=env, text=True,
                             preexec_fn=None if cpu is None else lambda: os.sched_setaffinity(0, {cpu}))
     try:
