@@ -26,7 +26,7 @@ import sys
 import typing
 from typing import Any, Callable, Literal, NamedTuple
 
-from eval import table_cells as cellrun
+from eval import table_cells
 from eval import tables
 from training import runconfig
 from training.runconfig import RunConfig
@@ -309,10 +309,10 @@ def variant_config(name: str, variant: str, scale: str, seed: int, run_dir: str,
 
 
 def plan(name: str, scale: str, seeds: int, out: str, spec: str | None = None,
-         trajectories: int | None = None, settings: tuple = ()) -> list[cellrun.Cell]:
+         trajectories: int | None = None, settings: tuple = ()) -> list[table_cells.Cell]:
     """The selected cells with their configurations, checked before anything is written: every
     variant config valid, every finished result computed with the config asked for now."""
-    return cellrun.planned_cells(out, select(name, cell_order(name, seeds), spec),
+    return table_cells.planned_cells(out, select(name, cell_order(name, seeds), spec),
                                  lambda v, seed, run_dir: variant_config(name, v, scale, seed, run_dir, trajectories,
                                                                          settings))
 
@@ -334,7 +334,7 @@ def status(out: str, name: str, seeds: int) -> list[str]:
 
 # -- running and reporting ---------------------------------------------------------------------
 def run(name: str, scale: str, seeds: int, out: str, spec: str | None = None, trajectories: int | None = None,
-        progress: bool = True, trainer: cellrun.Trainer = cellrun.goalseye, command: str = "",
+        progress: bool = True, trainer: table_cells.Trainer = table_cells.goalseye, command: str = "",
         settings: tuple = ()) -> dict:
     """Train the selected cells that are not finished, then rebuild the outputs. The summary has
     'stopped_by_signal' set when a signal cut a cell short (its run resumes next time)."""
@@ -344,16 +344,16 @@ def run(name: str, scale: str, seeds: int, out: str, spec: str | None = None, tr
             log(f"[ablate] note: {c.name} practises nothing: its {c.config.total_trajectories} trajectories do not "
                 f"exceed its {c.config.demos} demonstrations", file=sys.stderr)
     # GoalsEye's seeds of a variant train together as one program (training/seeds.py).
-    batch = cellrun.goalseye_seeds if trainer is cellrun.goalseye else None
-    stopped = cellrun.run_cells(cells, os.path.join(out, "results"), trainer, progress, f"ablate {name} {scale}",
+    batch = table_cells.goalseye_seeds if trainer is table_cells.goalseye else None
+    stopped = table_cells.run_cells(cells, os.path.join(out, "results"), trainer, progress, f"ablate {name} {scale}",
                                 log=lambda m: log(m, file=sys.stderr), batch=batch)
-    return cellrun.finish(cells, out, stopped, lambda: build_report(name, scale, out, command))
+    return table_cells.finish(cells, out, stopped, lambda: build_report(name, scale, out, command))
 
 
 def load_results(out: str) -> list[dict]:
     d = os.path.join(out, "results")
     names = sorted(f for f in os.listdir(d) if f.endswith(".json")) if os.path.isdir(d) else []
-    return [cellrun.load_result(os.path.join(d, f)) for f in names]
+    return [table_cells.load_result(os.path.join(d, f)) for f in names]
 
 
 def bootstrap_of(results: list[dict]) -> str:
@@ -377,7 +377,7 @@ def build_report(name: str, scale: str, out: str, command: str = "") -> dict:
               "title": f"ablate {name} ({scale}; bootstrap: {bootstrap_of(results)})",
               "subtitle": f"{ab.what}. Bootstrap: {bootstrap_of(results)}. Scale {scale}: {SCALES[scale].what}; "
                           f"{'/'.join(f'{t:,}' for t in trajectories)} trajectories per cell. Final evaluation of "
-                          f"each cell: {'/'.join(map(str, goals))} uniform goals, seed {cellrun.FINAL_EVAL_SEED} "
+                          f"each cell: {'/'.join(map(str, goals))} uniform goals, seed {table_cells.FINAL_EVAL_SEED} "
                           f"(the same goals and throws for every cell).",
               "variants_overrides": {v: {k: repr(x) if isinstance(x, Derived) else x for k, x in o.items()}
                                      for v, o in ab.variants.items()}}

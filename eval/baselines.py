@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 
 from eval import ablate
-from eval import table_cells as cellrun
+from eval import table_cells
 from eval import tables
 from eval.evaluate import uniform_runs
 from training import runconfig
@@ -104,21 +104,21 @@ def parse_methods(spec: str) -> list[str]:
 
 
 def plan(methods: list[str], scale: str, seeds: int, out: str, trajectories: int | None = None,
-         reward: RewardConfig = RewardConfig(), rl: dict | None = None, first_seed: int = 0) -> list[cellrun.Cell]:
+         reward: RewardConfig = RewardConfig(), rl: dict | None = None, first_seed: int = 0) -> list[table_cells.Cell]:
     """The cells of seeds first_seed..first_seed+seeds-1 (seed-major), every configuration built
     and every finished result checked before anything is written."""
     entries = [(m, seed) for seed in range(first_seed, first_seed + seeds) for m in methods]
-    return cellrun.planned_cells(out, entries,
+    return table_cells.planned_cells(out, entries,
                                  lambda m, seed, run_dir: method_config(m, scale, seed, run_dir, trajectories, reward, rl))
 
 
 # -- the RL trainer (the cells seam) ------------------------------------------------------------
-def rl_trainer(cfg: agents.BaselineConfig, progress: bool = True) -> cellrun.Outcome:
+def rl_trainer(cfg: agents.BaselineConfig, progress: bool = True) -> table_cells.Outcome:
     """rl_seeds of one cell (brax's loop unbatched)."""
     return rl_seeds([cfg], progress)[0]
 
 
-def rl_seeds(cfgs: list, progress: bool = True) -> list[cellrun.Outcome]:
+def rl_seeds(cfgs: list, progress: bool = True) -> list[table_cells.Outcome]:
     """The method's loop for the seeds `cfgs` (one program: agents.train_seeds), a strict-metric
     curve point wherever brax hands its policy out (at 0 and after each of its epochs; x:
     brax's environment steps / horizon, which need not be whole inside SAC's run), each policy
@@ -153,7 +153,7 @@ def rl_seeds(cfgs: list, progress: bool = True) -> list[cellrun.Outcome]:
     return outcomes
 
 
-def _rl_program(cfgs: list, progress: bool) -> list[cellrun.Outcome]:
+def _rl_program(cfgs: list, progress: bool) -> list[table_cells.Outcome]:
     """rl_seeds for seeds that train as one program."""
     cfg = cfgs[0]
     h = cfg.run.world.horizon
@@ -188,12 +188,12 @@ def _rl_program(cfgs: list, progress: bool) -> list[cellrun.Outcome]:
         agents.save_policy(c, params, run.total_trajectories)     # what brax ran: schedule() is exact
         own["save_s"] = round(time.perf_counter() - t, 3)
         t = time.perf_counter()
-        final, landings = cellrun.final_evaluation(run.run_dir)
+        final, landings = table_cells.final_evaluation(run.run_dir)
         own["final_eval_s"] = round(time.perf_counter() - t, 3)
         own["env_steps"] = agents.schedule(c).num_timesteps
         own["seeds_in_program"] = len(cfgs)
         files.write_json(os.path.join(run.run_dir, "timing.json"), own)
-        outcomes.append(cellrun.Outcome(True, 0, final, curve, landings))
+        outcomes.append(table_cells.Outcome(True, 0, final, curve, landings))
     return outcomes
 
 
@@ -209,14 +209,14 @@ def curve_metrics(cfg: agents.BaselineConfig, policies: list, backend: Backend) 
     return uniform_runs(run.world, run.policy, stacked, backend, keys, run.eval_goals)[0]
 
 
-def trainer(cfg, progress: bool = True) -> cellrun.Outcome:
+def trainer(cfg, progress: bool = True) -> table_cells.Outcome:
     """RL configurations to rl_trainer, RunConfigs to the GoalsEye trainer."""
-    return rl_trainer(cfg, progress) if isinstance(cfg, agents.BaselineConfig) else cellrun.goalseye(cfg, progress)
+    return rl_trainer(cfg, progress) if isinstance(cfg, agents.BaselineConfig) else table_cells.goalseye(cfg, progress)
 
 
-def seeds_trainer(cfgs: list, progress: bool = True) -> list[cellrun.Outcome]:
+def seeds_trainer(cfgs: list, progress: bool = True) -> list[table_cells.Outcome]:
     """The seeds of one method as one program: rl_seeds, or the GoalsEye trainer's batched seeds."""
-    return rl_seeds(cfgs, progress) if isinstance(cfgs[0], agents.BaselineConfig) else cellrun.goalseye_seeds(cfgs, progress)
+    return rl_seeds(cfgs, progress) if isinstance(cfgs[0], agents.BaselineConfig) else table_cells.goalseye_seeds(cfgs, progress)
 
 
 def run(methods: list[str], scale: str, seeds: int, out: str, trajectories: int | None = None,
@@ -225,9 +225,9 @@ def run(methods: list[str], scale: str, seeds: int, out: str, trajectories: int 
     """Train the cells that are not finished, then rebuild the table from every finished result
     (those of other seeds in `out` too: machines that ran other seeds add to one table)."""
     cells = plan(methods, scale, seeds, out, trajectories, reward, rl, first_seed)
-    stopped = cellrun.run_cells(cells, os.path.join(out, "results"), trainer, progress, f"baseline {scale}",
+    stopped = table_cells.run_cells(cells, os.path.join(out, "results"), trainer, progress, f"baseline {scale}",
                                 log=lambda m: log(m, file=sys.stderr), batch=seeds_trainer)
-    return cellrun.finish(cells, out, stopped, lambda: build_report(scale, out, command))
+    return table_cells.finish(cells, out, stopped, lambda: build_report(scale, out, command))
 
 
 def build_report(scale: str, out: str, command: str = "") -> dict:
@@ -240,6 +240,6 @@ def build_report(scale: str, out: str, command: str = "") -> dict:
               "title": f"baselines ({scale})",
               "subtitle": f"GoalsEye against the paper's Table I baselines (RL through brax, GCSL, LFP) at "
                           f"{'/'.join(f'{t:,}' for t in budgets)} trajectories per cell. Final evaluation of each "
-                          f"cell: uniform goals, seed {cellrun.FINAL_EVAL_SEED} (the same goals and throws for "
+                          f"cell: uniform goals, seed {table_cells.FINAL_EVAL_SEED} (the same goals and throws for "
                           f"every cell)."}
     return tables.write_report(out, results, list(METHODS), header)

@@ -1,4 +1,4 @@
-"""Where a PPO cell's environment time goes, piece by piece (issue #25), on the device JAX sees:
+"""Where a PPO cell's environment time goes, piece by piece, on the device JAX sees:
 the environment reset as it was (every environment solving its own throw, vmapped, once per
 episode) against the throw pool that replaced it (one batch of n x pool throws for `pool`
 episodes), and one training-step's worth of environment steps through the wrapper brax trains

@@ -50,8 +50,8 @@ VECTOR_FLAGS = ("sse4_1", "sse4_2", "avx", "avx2", "fma", "avx512f", "avx512dq",
                 "avx512_bf16", "avx512_fp16", "avx_vnni", "amx_bf16", "amx_tile", "asimd", "sve")
 
 # Practice as tests/data/before_renovation.json was recorded: goals on the table, only hits
-# landing near the opponent's half kept and the integrating action noise (the defaults since
-# issue #11 aim 0.2 m beyond the edges, keep every hit and hide the noise from the policy, which
+# landing near the opponent's half kept and the integrating action noise (today's defaults
+# aim 0.2 m beyond the edges, keep every hit and hide the noise from the policy, which
 # would change the run's numbers).
 RECORDED_PRACTICE = {"practice_goal_margin": 0.0, "practice_keep": "near_half", "action_noise_form": "integrating"}
 

@@ -25,7 +25,7 @@ def test_every_variant_resolves_at_every_scale(name):
             assert not variant.isdigit() and not {":", ","} & set(variant), variant   # --cells can name it
             try:
                 cfg = ablate.variant_config(name, variant, scale, seed=3, run_dir="r")
-            except ValueError as e:      # demonstrators that exist only once issue #11 item 1 lands
+            except ValueError as e:      # a bootstrap variant whose demonstrator this build lacks
                 assert name == "bootstrap" and "demo_source=" in str(e) and variant in str(e), e
                 continue
             assert cfg.seed == 3 and cfg.run_dir == "r"

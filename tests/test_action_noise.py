@@ -1,4 +1,4 @@
-"""Action noise in the closed loop (issue #11 item 4): a trained policy (tests/data/tiny_run_v0,
+"""Action noise in the closed loop: a trained policy (tests/data/tiny_run_v0,
 member 1) on narrow throws with real MuJoCo C physics, noise-free against the per-episode offset
 of models.policy.with_action_noise (a calibration offset the policy cannot see) and against the
 withdrawn integrating form (with_integrating_action_noise: z added to every target while the

@@ -1,4 +1,4 @@
-"""RL baselines (issue #12): the brax environment's reward terms are what RewardConfig says on a
+"""RL baselines: the brax environment's reward terms are what RewardConfig says on a
 scripted hit; brax's policy converts exactly into a GoalsEye framestack policy; the trajectory
 budget brax runs is the one recorded (never above the one asked for); and PPO, SAC and ES each
 train a few updates at the tiny scale through `ttmjx baseline`'s cells, with a learning curve of

@@ -1,6 +1,6 @@
 """Bootstrap sources (ttmjx/tools/demos.py) on the MuJoCo C backend: each gives valid
-demonstrations; `striker` (called `paper` before issue 22) never sees the goal and its landings
-spread as its perturbation implies; the perturbation touches exactly its 4 joints; `oracle` is
+demonstrations; `striker` (the scripted striker, not the paper's bootstrap) never sees the goal
+and its landings spread as its perturbation implies; the perturbation touches exactly its 4 joints; `oracle` is
 the striker of before. The `paper` procedure: tests/test_paper_bootstrap.py."""
 import math
 import os
@@ -20,7 +20,7 @@ N = 64
 # Actions, landings and observations of demos.collect(narrow, "scripted", 16, seed=3) computed by
 # the code before the sources were renamed (commit c892fc6, checked out and run on a 2-core x86-64
 # CPU, 2026-11-25). A hash of them is machine-specific: XLA:CPU emits different float rounding on
-# other x86-64 processors (issue #24), so they are compared to float32 rounding carried through
+# other x86-64 processors, so they are compared to float32 rounding carried through
 # an episode: today's code on the recording machine reproduces them bit for bit.
 BEFORE = os.path.join(os.path.dirname(__file__), "data", "oracle_before_c892fc6.npz")
 # Tolerances: far below anything a change of the striker would move (centimetres, tenths of a

@@ -1,4 +1,4 @@
-"""The export's timing record (issue #23): the contract records the timing model and ranges the
+"""The export's timing record: the contract records the timing model and ranges the
 policy was trained under, hashed; `ttmjx robot run` plays that timing by default and refuses,
 with one line and exit code 2, a station outside it (unless told to play it anyway, and then
 the summary says so), an export without the record, and an unknown profile name. Presets train
@@ -43,7 +43,7 @@ def exports(tmp_path_factory):
 
 
 def without_timing_record(src: str, dst: str) -> str:
-    """A copy of an export as exported before issue #23: no `timing` section, manifest re-hashed."""
+    """A copy of an export as exported before exports carried it: no `timing` section, manifest re-hashed."""
     from deploy.sim.export import write_manifest
     shutil.copytree(src, dst)
     doc = json.load(open(os.path.join(dst, CONTRACT_FILE)))

@@ -272,7 +272,7 @@ def test_backend_parity_positions_and_events(c_backend, mjx_backend):
 
 
 def test_bad_input_errors_name_the_field(c_backend):
-    with pytest.raises(ValueError, match="control_hz=60 does not divide into physics steps of physics_dt=0.001s"):
+    with pytest.raises(ValueError, match="control_hz=60 is not a whole number of physics steps of 0.001 s"):
         World(control_hz=60, physics_dt=0.001)
     with pytest.raises(ValueError, match="control_hz must be a positive integer"):
         World(control_hz=0)

@@ -122,12 +122,10 @@ def impact_states(cfg: World, surface: str, normal_speeds, phases) -> tuple[np.n
 MJX_BATCH = 128
 MJX_CHUNK = 4
 IMPACT_CONTROL_STEPS = 4   # 40 ms: lead-in, the slowest (2 m/s) contact and the way out
-# XLA:CPU's fusion emitters (the default in JAX 0.10) run MJX's batched kinematics ~200x slower
-# than its older loop emitters: the fused body-tree chain is recomputed per output element
-# (measured on a 2-core AMD EPYC, jaxlib 0.10.2: one chunk of 128 throws x 40 physics steps 6.1 s
-# with them, 0.10 s without; the same physics, trajectories equal to float32 rounding). A
-# compile option of this program only, on the CPU, where this XLA knows it (older and newer
-# jaxlibs name no such option: they compile without it).
+# XLA:CPU's fusion emitters (the default in JAX 0.10) recompute MJX's batched body-tree chain per
+# output element, far slower than its older loop emitters for the same physics (figures:
+# docs/BENCHMARKS.md, "Third pass"). A compile option of this program only, on the CPU, where this
+# XLA knows it (older and newer jaxlibs name no such option: they compile without it).
 MJX_CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
 

@@ -4,7 +4,8 @@
   vmapped `lax.scan`; the air forces MJX lacks come from ttmjx.world.ballphysics via xfrc_applied.
 * MuJoCo C: physics in batched multi-threaded `mujoco.rollout` calls, one control step at a time
   (MuJoCo's own ellipsoid fluid model flies the ball); the policy and the task logic run as
-  jit-compiled, vmapped JAX between the calls. The default on a CPU, where MJX is ~200x slower.
+  jit-compiled, vmapped JAX between the calls. The default on a CPU, where MJX is far slower
+  (shared docs: PHYSICS.md; docs/BENCHMARKS.md).
 """
 from __future__ import annotations
 
@@ -46,7 +47,7 @@ def on_accelerator() -> bool:
 
 def backend_kind(name: str) -> BackendKind:
     """The registry's entry of a backend name ('auto': MJX on an accelerator, MuJoCo C on a CPU,
-    where MJX is ~200x slower); ValueError naming the choices otherwise."""
+    where MJX is far slower); ValueError naming the choices otherwise."""
     if name == "auto":
         name = "mjx" if on_accelerator() else "c"
     if name not in REGISTRY:

@@ -361,10 +361,7 @@ class World:
         if self.physics_dt is None:
             n = math.ceil(1.0 / (self.control_hz * self.max_physics_dt) - 1e-9)
             object.__setattr__(self, "physics_dt", 1.0 / (self.control_hz * n))
-        steps = 1.0 / (self.control_hz * self.physics_dt)
-        if abs(steps - round(steps)) > 1e-6 or round(steps) < 1:
-            raise ValueError(f"control_hz={self.control_hz} does not divide into physics steps of "
-                             f"physics_dt={self.physics_dt}s (1/(hz*dt) = {steps:.4g} is not an integer)")
+        physics_steps_per_sample(self.control_hz, self.physics_dt, "control_hz")
         if self.frame_stack < 1:
             raise ValueError(f"frame_stack must be >= 1, got {self.frame_stack}")
         if self.episode_s <= 0:
@@ -385,7 +382,7 @@ class World:
     @property
     def substeps(self) -> int:
         """Physics steps per control step."""
-        return int(round(1.0 / (self.control_hz * self.physics_dt)))
+        return physics_steps_per_sample(self.control_hz, self.physics_dt, "control_hz")
 
     @property
     def control_dt(self) -> float:
