@@ -313,8 +313,8 @@ def plan(name: str, scale: str, seeds: int, out: str, spec: str | None = None,
     """The selected cells with their configurations, checked before anything is written: every
     variant config valid, every finished result computed with the config asked for now."""
     return table_cells.planned_cells(out, select(name, cell_order(name, seeds), spec),
-                                 lambda v, seed, run_dir: variant_config(name, v, scale, seed, run_dir, trajectories,
-                                                                         settings))
+                                     lambda v, seed, run_dir: variant_config(name, v, scale, seed, run_dir,
+                                                                             trajectories, settings))
 
 
 def status(out: str, name: str, seeds: int) -> list[str]:
@@ -345,8 +345,8 @@ def run(name: str, scale: str, seeds: int, out: str, spec: str | None = None, tr
                 f"exceed its {c.config.demos} demonstrations", file=sys.stderr)
     # GoalsEye's seeds of a variant train together as one program (training/seeds.py).
     batch = table_cells.goalseye_seeds if trainer is table_cells.goalseye else None
-    stopped = table_cells.run_cells(cells, os.path.join(out, "results"), trainer, progress, f"ablate {name} {scale}",
-                                log=lambda m: log(m, file=sys.stderr), batch=batch)
+    stopped = table_cells.run_cells(cells, os.path.join(out, "results"), trainer, progress,
+                                    f"ablate {name} {scale}", log=lambda m: log(m, file=sys.stderr), batch=batch)
     return table_cells.finish(cells, out, stopped, lambda: build_report(name, scale, out, command))
 
 

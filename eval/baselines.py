@@ -108,8 +108,8 @@ def plan(methods: list[str], scale: str, seeds: int, out: str, trajectories: int
     """The cells of seeds first_seed..first_seed+seeds-1 (seed-major), every configuration built
     and every finished result checked before anything is written."""
     entries = [(m, seed) for seed in range(first_seed, first_seed + seeds) for m in methods]
-    return table_cells.planned_cells(out, entries,
-                                 lambda m, seed, run_dir: method_config(m, scale, seed, run_dir, trajectories, reward, rl))
+    return table_cells.planned_cells(
+        out, entries, lambda m, seed, run_dir: method_config(m, scale, seed, run_dir, trajectories, reward, rl))
 
 
 # -- the RL trainer (the cells seam) ------------------------------------------------------------
@@ -226,7 +226,7 @@ def run(methods: list[str], scale: str, seeds: int, out: str, trajectories: int 
     (those of other seeds in `out` too: machines that ran other seeds add to one table)."""
     cells = plan(methods, scale, seeds, out, trajectories, reward, rl, first_seed)
     stopped = table_cells.run_cells(cells, os.path.join(out, "results"), trainer, progress, f"baseline {scale}",
-                                log=lambda m: log(m, file=sys.stderr), batch=seeds_trainer)
+                                    log=lambda m: log(m, file=sys.stderr), batch=seeds_trainer)
     return table_cells.finish(cells, out, stopped, lambda: build_report(scale, out, command))
 
 

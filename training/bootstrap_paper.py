@@ -49,8 +49,8 @@ MIN_ES_EPISODES = 20_000       # ES episodes (generations x population x throws)
 
 @dataclasses.dataclass(frozen=True)
 class Procedure:
-    """Sizes of the procedure. The defaults are sized for a CPU run (timings: docs/RESULTS.md, "The paper's
-    bootstrap procedure on any-ball throws")."""
+    """Sizes of the procedure. The defaults are sized for a CPU run (timings: docs/RESULTS.md,
+    "The paper's bootstrap procedure on any-ball throws")."""
     narrow: int = 1000
     """ES episodes gathered (4 joints perturbed): the imitation data of stage 3."""
     shift: int = 1500

@@ -19,8 +19,8 @@ one (deploy.robot.safety.FAULTS), buffered, and linearly interpolated to each de
 
 Collector. Python's cyclic garbage collector stops every thread while it runs, and a full
 collection over a large heap (a process that has loaded JAX and compiled functions) can take
-longer than the stale bound (measured: docs/RESULTS.md, "Garbage-collector pauses"): the drivers' threads would stop
-answering and the runner would see its own joints go stale. So the collector is off while
+longer than the stale bound (measured: docs/RESULTS.md, "Garbage-collector pauses"): the
+drivers' threads would stop answering and the runner would see its own joints go stale. So the collector is off while
 episodes run (_collector_paused): objects older than the session are frozen out of it, and it
 runs between episodes, when nothing is timed.
 
