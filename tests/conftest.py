@@ -37,6 +37,14 @@ if os.environ.get("TTMJX_COMPILE_LOG"):          # opt-in profile: tests/compile
         compile_log.set_test(nodeid)
 
 
+def machine_stalled(summary: dict, stats: dict) -> bool:
+    """Whether a session over loopback (a runner summary, `ttmjx robot serve`'s stats) was held
+    up by the computer, not the wire: the runner missed tick deadlines or saw its joints go stale
+    (nothing is lost over loopback), or serve's real-time loop paused over 100 ms."""
+    return (summary["faults"].get("skipped", 0) > 0 or summary["faults"].get("joint_stale", 0) > 0
+            or stats["counts"].get("loop_gaps_over_100ms", 0) > 0)
+
+
 def private_compilation_cache(directory) -> dict:
     """Environment variables that give a subprocess its own copy of the session's compilation
     cache, for a child whose writes are cut short (a file-size limit): JAX writes an entry in

@@ -19,6 +19,7 @@ import pytest
 pytest.importorskip("abb_robot_client")
 pytest.importorskip("pymodbus")
 
+from conftest import machine_stalled  # noqa: E402
 from deploy.robot.contract import Contract  # noqa: E402
 from deploy.robot.drivers import config as cellconfig  # noqa: E402
 from deploy.robot.drivers.cell import Launcher, run_cell
@@ -73,12 +74,6 @@ def session(served, name, faults="", goals=GOALS, config=QUICK):
 def latched(summary) -> set:
     from deploy.robot.safety import FAULTS, LATCHING
     return {k for k in summary["faults"] if k in FAULTS and FAULTS[k] & LATCHING}
-
-
-def machine_stalled(summary, stats) -> bool:
-    """Whether the runner missed tick deadlines or serve's real-time loop paused over 100 ms:
-    the computer, not the wire, was late."""
-    return summary["faults"].get("skipped", 0) > 0 or stats["counts"].get("loop_gaps_over_100ms", 0) > 0
 
 
 def test_a_session_plays_through_the_drivers(served):
