@@ -19,7 +19,7 @@ from ttmjx.world.backends import Backend, resolve_backend
 from ttmjx.world.config import THROW_DISTRIBUTIONS, World
 from ttmjx.world.env import uniform_goals
 from ttmjx.world.goalfile import is_goal_file, read_goal_file
-from ttmjx.world.goals import five_goals, goal_metrics, per_goal_metrics
+from ttmjx.world.goals import GOAL_REGIONS, five_goals, goal_metrics, per_goal_metrics, region_success
 from ttmjx.world.record import Trajectories
 
 
@@ -102,12 +102,21 @@ def uniform_runs(world: World, pcfg: PolicyConfig, params, backend: Backend, key
     return [goal_metrics(tr.landing[s], goals[s], tr.hit[s], tr.on_opponent[s]) for s in range(len(goals))], tr
 
 
+def with_regions(metrics: dict, tr: Trajectories, table) -> dict:
+    """metrics plus `<region>_30cm`, within 30 cm over the goals of each of GOAL_REGIONS (the
+    diagnostics of `ttmjx report`; NaN for a region no goal fell in)."""
+    regions = region_success(tr.landing, tr.goal, tr.hit, tr.on_opponent, table)
+    return {**metrics, **{f"{name}_30cm": float(v) for name, v in zip(GOAL_REGIONS, regions)}}
+
+
 def training_evaluation(cfg):
     """The evaluation a training run calls (training.trainer.Run's `evaluate`): cfg.eval_goals
-    uniform goals, the whole ensemble playing. (params, backend, key) -> metrics."""
+    uniform goals, the whole ensemble playing, with success by goal region. (params, backend,
+    key) -> metrics."""
     def evaluate(params, backend: Backend, key) -> dict:
-        return evaluate_uniform(cfg.world, cfg.policy, params, backend, key, cfg.eval_goals,
-                                members=cfg.train.members)
+        metrics, tr = uniform_run(cfg.world, cfg.policy, params, backend, key, cfg.eval_goals,
+                                  members=cfg.train.members)
+        return with_regions(metrics, tr, cfg.world.table)
     return evaluate
 
 
@@ -115,7 +124,9 @@ def training_evaluation_seeds(cfg):
     """training_evaluation for the seeds of a batch (training.seeds.SeedRuns): (params [S, ...],
     backend, keys [S]) -> [metrics] per seed, every seed's goals and throws as if it ran alone."""
     def evaluate(params, backend: Backend, keys) -> list[dict]:
-        return uniform_runs(cfg.world, cfg.policy, params, backend, keys, cfg.eval_goals, members=cfg.train.members)[0]
+        metrics, tr = uniform_runs(cfg.world, cfg.policy, params, backend, keys, cfg.eval_goals,
+                                   members=cfg.train.members)
+        return [with_regions(m, Trajectories(*(x[s] for x in tr)), cfg.world.table) for s, m in enumerate(metrics)]
     return evaluate
 
 

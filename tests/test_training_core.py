@@ -9,7 +9,7 @@ import pytest
 
 from models import (Normalizer, PolicyConfig, ensemble_size, identity_normalizer, init_params, member,
                     predict_sequence)
-from ttmjx.world.config import Table
+from ttmjx.world.config import Table, World
 from ttmjx.world import observation
 from ttmjx.world.record import Trajectories
 from training import (Batch, TrainConfig, add_episodes, append, data_normalizer, empty_cache,
@@ -122,10 +122,22 @@ def test_practice_statistics_cover_the_counted_episodes_only(traj):
     from ttmjx.world.goals import goal_stats
     t = jax.tree.map(jnp.asarray, traj._replace(on_opponent=np.isfinite(traj.landing[:, 0])))
     n = traj.size // 2
-    part = practice_stats(t, jnp.int32(0), jnp.int32(5), jnp.int32(n))
-    first = goal_stats(*(np.asarray(x)[:n] for x in (t.landing, t.goal, t.hit, t.on_opponent)))
+    table = World().table
+    part = practice_stats(t, jnp.int32(0), jnp.int32(5), jnp.int32(n), table)
+    landing, goal, hit, on_opp = (np.asarray(x)[:n] for x in (t.landing, t.goal, t.hit, t.on_opponent))
+    first = goal_stats(landing, goal, hit, on_opp)
     for k in ("hit_rate", "on_table_rate", "within_30cm", "within_20cm"):
         np.testing.assert_allclose(float(getattr(part, k)), first[k], rtol=1e-6, err_msg=k)
+    # By goal region, against a plain loop over the counted attempts.
+    third, ok = table.half_length / 3, []
+    for (x, y), l, h, o in zip(goal, landing, hit, on_opp):
+        good = bool(h and o and np.hypot(*(l - (x, y))) <= 0.3)
+        edge = abs(y) > table.half_width - 0.2 or x > table.half_length - 0.2
+        ok.append((x < third, third <= x < 2 * third, x >= 2 * third, edge, good))
+    ok = np.array(ok)
+    for r, name in enumerate(("near", "middle", "far", "edges")):
+        want = ok[ok[:, r], 4].mean() if ok[:, r].any() else np.nan
+        np.testing.assert_allclose(float(getattr(part, f"{name}_30cm")), want, rtol=1e-6, err_msg=name)
     assert 0 < first["hit_rate"] < 1 and first["within_30cm"] > 0, "the fixture should hold hits and successes"
 
 
@@ -311,6 +323,34 @@ def test_demo_fraction_keeps_demonstrations_in_every_batch():
     assert rows.max() < 60 and abs(np.mean(rows < 10) - 1 / 6) < 0.02
     with pytest.raises(ValueError, match="demo_fraction=1.5"):
         TrainConfig(demo_fraction=1.5)
+
+
+def test_balanced_sampling_draws_each_landing_cell_equally_often():
+    """balance = 1: a row's chance is 1 / (occupied cells x episodes in its cell), so a cell
+    holding 40 episodes is drawn as often as one holding 2 (a plain count over the rows is the
+    reference); balance = 0.5 in between; with demo_fraction the demonstrations keep their share."""
+    c = empty_cache(100, 4)
+    # 40 landings in one cell, 2 in another far away, 8 in a third; 50 rows filled.
+    goals = np.zeros((100, 2), np.float32)
+    goals[:40] = (0.70, 0.00)
+    goals[40:42] = (0.20, 0.60)
+    goals[42:50] = (1.20, -0.60)
+    c = c._replace(goal=jnp.asarray(goals), size=jnp.int32(50), count=jnp.int32(50),
+                   demo=jnp.zeros(100, bool).at[40:50].set(True))
+    draw = jax.jit(sample_episodes, static_argnums=(2, 3, 4))
+    n = 60_000
+    group = np.repeat([0, 1, 2], [40, 2, 8])
+    for balance, counts in ((1.0, (40, 2, 8)), (0.5, (40, 2, 8))):
+        rows = np.asarray(draw(jax.random.PRNGKey(0), c, n, 0.0, balance))
+        assert rows.min() >= 0 and rows.max() < 50
+        w = np.array(counts, float) ** (1 - balance)          # total weight of each cell
+        want = w / w.sum()
+        got = np.bincount(group[rows], minlength=3) / n
+        np.testing.assert_allclose(got, want, atol=4 * np.sqrt(want * (1 - want) / n).max())
+    rows = np.asarray(draw(jax.random.PRNGKey(2), c, n, 0.8, 1.0))
+    assert abs(np.mean(rows >= 40) - 0.8) < 0.01                # the demonstrations' share
+    with pytest.raises(ValueError, match="balance=3"):
+        TrainConfig(balance=3)
 
 
 # --- checkpoints ----------------------------------------------------------------------------

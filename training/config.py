@@ -48,6 +48,10 @@ class TrainConfig:
     # Each training window comes from a demonstration with probability at least this (0: rows
     # uniform over the whole pool, as in the paper); see training.sampler.sample_episodes.
     demo_fraction: float = 0.0
+    # Landing-balanced sampling: each training row is drawn with weight count ** -balance, count
+    # the pool's episodes whose landing lies in its cell (training.sampler.balanced_weights);
+    # 0: uniform over rows (the paper), 1: uniform over the places landed on.
+    balance: float = 0.0
     min_std: float = 1e-3                # floor of normalization stds
 
     def __post_init__(self):
@@ -69,6 +73,9 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.practice_keep={self.practice_keep!r}, expected one of {PRACTICE_KEEP}")
         if not 0.0 <= self.demo_fraction <= 1.0:
             raise ValueError(f"TrainConfig.demo_fraction={self.demo_fraction}, expected in [0, 1]")
+        if not 0.0 <= self.balance <= 2.0:
+            raise ValueError(f"TrainConfig.balance={self.balance}, expected an exponent in [0, 2] "
+                             f"(0: uniform rows, 1: uniform over the cells landed on)")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ValueError(f"TrainConfig.ema_decay={self.ema_decay}, expected in [0, 1)")
 

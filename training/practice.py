@@ -29,9 +29,9 @@ from training.mesh import Layout, single_device
 from training.update import TrainState, acting_params, make_train_loop, state_sharding, train_loop_fn
 from ttmjx.world import thrower
 from ttmjx.world.backends import Backend, backend_kind
-from ttmjx.world.config import World
+from ttmjx.world.config import Table, World
 from ttmjx.world.env import uniform_goals
-from ttmjx.world.goals import goal_stats
+from ttmjx.world.goals import goal_stats, region_success
 from ttmjx.world.record import Trajectories
 
 
@@ -42,6 +42,11 @@ class PracticeStats(NamedTuple):
     within_30cm: jax.Array
     within_20cm: jax.Array
     kept: jax.Array          # episodes appended to the cache
+    # within 30 cm over the goals in each region (ttmjx.world.goals.GOAL_REGIONS; NaN if none)
+    near_30cm: jax.Array
+    middle_30cm: jax.Array
+    far_30cm: jax.Array
+    edges_30cm: jax.Array
 
 
 class RoundParts(NamedTuple):
@@ -63,12 +68,13 @@ def practice_policy(pcfg: PolicyConfig, tcfg: TrainConfig):
     return noisy(base, tcfg.action_noise)
 
 
-def practice_stats(traj: Trajectories, kept_before, kept_after, counted) -> PracticeStats:
+def practice_stats(traj: Trajectories, kept_before, kept_after, counted, table: Table) -> PracticeStats:
     """Statistics over the round's first `counted` episodes (those within the run's budget)."""
     first = jnp.arange(traj.hit.shape[0]) < counted
     s = goal_stats(traj.landing, traj.goal, traj.hit, traj.on_opponent, xp=jnp, counted=first)
+    regions = region_success(traj.landing, traj.goal, traj.hit, traj.on_opponent, table, xp=jnp, counted=first)
     return PracticeStats(s["hit_rate"], s["on_table_rate"], s["within_30cm"], s["within_20cm"],
-                         (kept_after - kept_before).astype(jnp.int32))
+                         (kept_after - kept_before).astype(jnp.int32), *regions)
 
 
 def round_keys(key):
@@ -78,7 +84,7 @@ def round_keys(key):
 
 
 def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, throws: thrower.Throw,
-                   counted, seeds: bool = False):
+                   counted, table: Table, seeds: bool = False):
     """One round of Algorithm 1 -> (state, cache, loss [N], PracticeStats): goals, rollouts of the
     acting (moving-average) policies on `throws` [M], relabel + append, S updates.
 
@@ -92,7 +98,8 @@ def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, thro
     k_goal, k_roll, k_train = over(round_keys)(key)
     traj = parts.rollout(acting_params(state), k_roll, parts.place(throws), parts.place(parts.goals(k_goal)))
     new = parts.append(cache, traj, counted)
-    stats = over(practice_stats)(jax.tree.map(jnp.asarray, traj), cache.count, new.count, counted)
+    stats = over(lambda *a: practice_stats(*a, table))(jax.tree.map(jnp.asarray, traj), cache.count, new.count,
+                                                      counted)
     state, loss = parts.train(state, new, k_train)
     return state, new, loss, stats
 
@@ -160,8 +167,8 @@ class Practice:
         parts = pure._replace(rollout=lambda *a: lay.constrain_throws(pure.rollout(*a)))
         out = (state_sharding(lay), lay.replicated, lay.replicated, lay.replicated)
         if self.seeds:   # one device (checked in __init__): the seed axis needs no placement
-            return jax.jit(jax.vmap(lambda *a: practice_round(parts, *a)))
-        return jax.jit(lambda *a: practice_round(parts, *a), out_shardings=out)
+            return jax.jit(jax.vmap(lambda *a: practice_round(parts, *a, self.world.table)))
+        return jax.jit(lambda *a: practice_round(parts, *a, self.world.table), out_shardings=out)
 
     def _host_round(self, policy):
         """MuJoCo C: the round runs on the host around compiled goals, append and updates; the
@@ -173,12 +180,12 @@ class Practice:
                 goals=jax.jit(jax.vmap(pure.goals)), append=jax.jit(jax.vmap(pure.append)), train=self.train,
                 rollout=lambda p, k, th, g: backend.rollout_seeds(policy, p, k, th, g, members=members),
                 place=lambda tree: tree)
-            return lambda *a: practice_round(parts, *a, seeds=True)
+            return lambda *a: practice_round(parts, *a, self.world.table, seeds=True)
         parts = pure._replace(
             goals=jax.jit(pure.goals), append=jax.jit(pure.append, out_shardings=lay.replicated),
             rollout=lambda p, k, th, g: backend.rollout(policy, lay.local(p), k, th, g, members=members),
             place=lambda tree: tree)
-        return lambda *a: practice_round(parts, *a)
+        return lambda *a: practice_round(parts, *a, self.world.table)
 
     def round_throws(self, base_key, it: int) -> thrower.Throw:
         """The M throws [M, ...] of practice round `it`, a function of (base_key, it) only (so a

@@ -35,7 +35,58 @@ def nth_true(mask, n):
     return jnp.searchsorted(jnp.cumsum(mask), n + 1, side="left").astype(jnp.int32)
 
 
-def sample_episodes(key, cache: Cache, batch_size: int, demo_fraction: float = 0.0):
+# Landing-balanced sampling (TrainConfig.balance) counts the pool's relabelled goals in square
+# cells of this side (m), over this window of the table frame (landings outside fall into the
+# border cells). The side is of the order of the success radii (0.2-0.3 m), so a cell is "one
+# place to aim at"; the window holds the opponent's half and 1 m around it.
+BALANCE_CELL = 0.15
+BALANCE_WINDOW = ((-1.0, 2.4), (-1.8, 1.8))
+
+
+def landing_cells(goal):
+    """[C] int32 cell index of each relabelled goal [C, 2] on the BALANCE_CELL grid."""
+    (x0, x1), (y0, y1) = BALANCE_WINDOW
+    nx, ny = int(round((x1 - x0) / BALANCE_CELL)), int(round((y1 - y0) / BALANCE_CELL))
+    ix = jnp.clip(jnp.floor((goal[:, 0] - x0) / BALANCE_CELL), 0, nx - 1).astype(jnp.int32)
+    iy = jnp.clip(jnp.floor((goal[:, 1] - y0) / BALANCE_CELL), 0, ny - 1).astype(jnp.int32)
+    return jnp.where(jnp.all(jnp.isfinite(goal), -1), ix * ny + iy, 0), nx * ny
+
+
+def balanced_weights(cache: Cache, balance: float):
+    """[C] float32 sampling weight of each row: count(cell of its landing) ** -balance over the
+    filled rows, 0 elsewhere. balance = 1: every occupied cell is drawn equally often, whatever
+    how many episodes landed there (Skew-Fit's density reweighting with a histogram density);
+    0: uniform over rows."""
+    filled = jnp.arange(cache.capacity) < cache.size
+    cell, n_cells = landing_cells(cache.goal)
+    counts = jax.ops.segment_sum(filled.astype(jnp.float32), cell, num_segments=n_cells)
+    return jnp.where(filled, jnp.maximum(counts[cell], 1.0) ** -balance, 0.0)
+
+
+def draw_rows(key, weights, n: int):
+    """[n] int32 rows drawn with probability proportional to weights [C] (>= 0, not all 0), by
+    inverting the cumulative sum (O(C + n log C), not n draws over C categories)."""
+    cdf = jnp.cumsum(weights)
+    u = jax.random.uniform(key, (n,)) * cdf[-1]
+    return jnp.minimum(jnp.searchsorted(cdf, u, side="right"), weights.shape[0] - 1).astype(jnp.int32)
+
+
+def sample_balanced(key, cache: Cache, batch_size: int, demo_fraction: float, balance: float):
+    """[B] rows drawn by balanced_weights; with demo_fraction f, a row comes from the
+    demonstrations with probability max(f, their share of the weight), balanced within each group."""
+    w = balanced_weights(cache, balance)
+    k_grp, k_demo, k_prac = jax.random.split(key, 3)
+    if demo_fraction == 0.0:
+        return draw_rows(k_prac, w, batch_size)
+    w_demo, w_prac = jnp.where(cache.demo, w, 0.0), jnp.where(cache.demo, 0.0, w)
+    s_demo, s_prac = w_demo.sum(), w_prac.sum()
+    p_demo = jnp.maximum(demo_fraction, s_demo / jnp.maximum(s_demo + s_prac, 1e-30))
+    from_demo = jax.random.uniform(k_grp, (batch_size,)) < p_demo
+    row = jnp.where(from_demo, draw_rows(k_demo, w_demo, batch_size), draw_rows(k_prac, w_prac, batch_size))
+    return jnp.where((s_demo > 0) & (s_prac > 0), row, draw_rows(k_prac, w, batch_size))
+
+
+def sample_episodes(key, cache: Cache, batch_size: int, demo_fraction: float = 0.0, balance: float = 0.0):
     """[B] int32 cache rows to train on (jit-compatible).
 
     demo_fraction = 0: uniform over the cache's `size` rows (the paper). demo_fraction = f > 0:
@@ -43,7 +94,13 @@ def sample_episodes(key, cache: Cache, batch_size: int, demo_fraction: float = 0
     uniform within its group, so practice adds to the pool without drowning the demonstrations
     (practice episodes are the policy's own, less precise strokes). Falls back to uniform while
     either group is empty.
+
+    balance = a > 0: rows are drawn with weight count(cell of the landing) ** -a instead of
+    uniformly (sample_balanced), so the policy's own landings, piling up where it already lands,
+    do not crowd out the places few episodes reached.
     """
+    if balance > 0.0:
+        return sample_balanced(key, cache, batch_size, demo_fraction, balance)
     k_all, k_grp, k_idx = jax.random.split(key, 3)
     size = jnp.maximum(cache.size, 1)
     uniform = jax.random.randint(k_all, (batch_size,), 0, size)
@@ -62,7 +119,8 @@ def sample_episodes(key, cache: Cache, batch_size: int, demo_fraction: float = 0
 
 
 def sample_subsequences(key, cache: Cache, k: int, batch_size: int,
-                        frame_stack: int = 1, obs_size: int = 13, demo_fraction: float = 0.0) -> Batch:
+                        frame_stack: int = 1, obs_size: int = 13, demo_fraction: float = 0.0,
+                        balance: float = 0.0) -> Batch:
     """`batch_size` windows of k steps from the cache's first `cache.size` rows (jit-compatible).
 
     Episodes are drawn by `sample_episodes`; each window contains the episode's hit step. Each step's
@@ -72,7 +130,7 @@ def sample_subsequences(key, cache: Cache, k: int, batch_size: int,
     """
     t = cache.horizon
     k_ep, k_start = jax.random.split(key)
-    ep = sample_episodes(k_ep, cache, batch_size, demo_fraction)
+    ep = sample_episodes(k_ep, cache, batch_size, demo_fraction, balance)
     valid = cache.valid[ep]                                        # [B, T]
     start = window_starts(k_start, valid.sum(-1), cache.hit_step[ep], k)
     steps = start[:, None] + jnp.arange(k)                          # [B, k]

@@ -70,7 +70,7 @@ def member_update(pcfg: PolicyConfig, tcfg: TrainConfig, params: PolicyParams, o
     """One member: sample a batch, one optimizer step -> (params, opt_state, loss []).
     `place` puts the sampled windows [B, ...] where they are computed on (Layout.constrain_batch)."""
     batch = place(sample_subsequences(key, cache, tcfg.window, tcfg.batch_size,
-                                      pcfg.input_frames, pcfg.obs_size, tcfg.demo_fraction))
+                                      pcfg.input_frames, pcfg.obs_size, tcfg.demo_fraction, tcfg.balance))
     loss, grads = jax.value_and_grad(
         lambda net: policy_loss(pcfg, params._replace(net=net), batch))(params.net)
     updates, opt_state = optimizer(tcfg).update(grads, opt_state, params.net)

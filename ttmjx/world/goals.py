@@ -30,6 +30,32 @@ FIVE_GOALS = {
 RADII = (0.30, 0.20)      # the paper's success radii (m)
 
 
+# Goal regions of the diagnostics (ttmjx report, the run's metrics): thirds of the half's depth
+# from the net, and the band within EDGE_BAND of its side and end lines (the paper: goals "less
+# than 20cm from the edges"). The thirds partition the half; the edges overlap them.
+GOAL_REGIONS = ("near", "middle", "far", "edges")
+EDGE_BAND = 0.2
+
+
+def goal_regions(goal, table: Table, xp=np):
+    """[4, B] bool: which of GOAL_REGIONS each goal [B, 2] lies in (a goal off the half, by the
+    practice goals' margin, falls in the third of its depth and in the edges)."""
+    x, y = goal[:, 0], goal[:, 1]
+    third = table.half_length / 3
+    edges = (xp.abs(y) > table.half_width - EDGE_BAND) | (x > table.half_length - EDGE_BAND)
+    return xp.stack([x < third, (x >= third) & (x < 2 * third), x >= 2 * third, edges])
+
+
+def region_success(landing, goal, hit, on_opponent, table: Table, xp=np, counted=None):
+    """[4] within-30-cm success over the attempts whose goal lies in each of GOAL_REGIONS (NaN
+    for a region without attempts); counted [B] bool as goal_stats."""
+    ok = scored_distance(landing, goal, hit, on_opponent, xp) <= RADII[0]
+    w = xp.ones(ok.shape, bool) if counted is None else counted
+    masks = goal_regions(goal, table, xp) & w[None]
+    n = masks.sum(-1)
+    return xp.where(n > 0, (masks & ok[None]).sum(-1) / xp.maximum(n, 1), xp.nan)
+
+
 def goals_from_unit(u, table: Table, xp=np, margin: float = 0.0):
     """[n, 2] uniform numbers in [0, 1) -> [n, 2] goals uniform over the opponent's half, extended
     `margin` metres beyond its end line and both side lines (never over the net): x in
