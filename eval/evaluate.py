@@ -19,7 +19,8 @@ from ttmjx.world.backends import Backend, resolve_backend
 from ttmjx.world.config import THROW_DISTRIBUTIONS, World
 from ttmjx.world.env import uniform_goals
 from ttmjx.world.goalfile import is_goal_file, read_goal_file
-from ttmjx.world.goals import GOAL_REGIONS, five_goals, goal_metrics, per_goal_metrics, region_success
+from ttmjx.world.goals import (GOAL_REGIONS, five_goals, goal_metrics, member_success, per_goal_metrics,
+                               region_success)
 from ttmjx.world.record import Trajectories
 
 
@@ -102,11 +103,15 @@ def uniform_runs(world: World, pcfg: PolicyConfig, params, backend: Backend, key
     return [goal_metrics(tr.landing[s], goals[s], tr.hit[s], tr.on_opponent[s]) for s in range(len(goals))], tr
 
 
-def with_regions(metrics: dict, tr: Trajectories, table) -> dict:
-    """metrics plus `<region>_30cm`, within 30 cm over the goals of each of GOAL_REGIONS (the
-    diagnostics of `ttmjx report`; NaN for a region no goal fell in)."""
-    regions = region_success(tr.landing, tr.goal, tr.hit, tr.on_opponent, table)
-    return {**metrics, **{f"{name}_30cm": float(v) for name, v in zip(GOAL_REGIONS, regions)}}
+def with_regions(metrics: dict, tr: Trajectories, table, members: int | None = None) -> dict:
+    """metrics plus the diagnostics of `ttmjx report`: `<region>_30cm`, within 30 cm over the
+    goals of each of GOAL_REGIONS (NaN for a region no goal fell in), and for an ensemble
+    `member<i>_30cm`, each member alone over the block of goals it played."""
+    outcome = (tr.landing, tr.goal, tr.hit, tr.on_opponent)
+    out = {**metrics, **{f"{name}_30cm": float(v) for name, v in zip(GOAL_REGIONS, region_success(*outcome, table))}}
+    if members and members > 1:
+        out.update({f"member{i}_30cm": float(v) for i, v in enumerate(member_success(*outcome, members))})
+    return out
 
 
 def training_evaluation(cfg):
@@ -116,7 +121,7 @@ def training_evaluation(cfg):
     def evaluate(params, backend: Backend, key) -> dict:
         metrics, tr = uniform_run(cfg.world, cfg.policy, params, backend, key, cfg.eval_goals,
                                   members=cfg.train.members)
-        return with_regions(metrics, tr, cfg.world.table)
+        return with_regions(metrics, tr, cfg.world.table, cfg.train.members)
     return evaluate
 
 
@@ -126,7 +131,8 @@ def training_evaluation_seeds(cfg):
     def evaluate(params, backend: Backend, keys) -> list[dict]:
         metrics, tr = uniform_runs(cfg.world, cfg.policy, params, backend, keys, cfg.eval_goals,
                                    members=cfg.train.members)
-        return [with_regions(m, Trajectories(*(x[s] for x in tr)), cfg.world.table) for s, m in enumerate(metrics)]
+        return [with_regions(m, Trajectories(*(x[s] for x in tr)), cfg.world.table, cfg.train.members)
+                for s, m in enumerate(metrics)]
     return evaluate
 
 

@@ -123,7 +123,7 @@ def test_practice_statistics_cover_the_counted_episodes_only(traj):
     t = jax.tree.map(jnp.asarray, traj._replace(on_opponent=np.isfinite(traj.landing[:, 0])))
     n = traj.size // 2
     table = World().table
-    part = practice_stats(t, jnp.int32(0), jnp.int32(5), jnp.int32(n), table)
+    part = practice_stats(t, jnp.int32(0), jnp.int32(5), jnp.int32(n), table, members=2)
     landing, goal, hit, on_opp = (np.asarray(x)[:n] for x in (t.landing, t.goal, t.hit, t.on_opponent))
     first = goal_stats(landing, goal, hit, on_opp)
     for k in ("hit_rate", "on_table_rate", "within_30cm", "within_20cm"):
@@ -138,6 +138,12 @@ def test_practice_statistics_cover_the_counted_episodes_only(traj):
     for r, name in enumerate(("near", "middle", "far", "edges")):
         want = ok[ok[:, r], 4].mean() if ok[:, r].any() else np.nan
         np.testing.assert_allclose(float(getattr(part, f"{name}_30cm")), want, rtol=1e-6, err_msg=name)
+    # By member: member i played the i-th contiguous half of the round; only counted ones score.
+    half = traj.size // 2 + traj.size % 2
+    for i in range(2):
+        mine = ok[i * half:min((i + 1) * half, n), 4]
+        want = mine.mean() if len(mine) else np.nan
+        np.testing.assert_allclose(float(part.members_30cm[i]), want, rtol=1e-6, err_msg=f"member {i}")
     assert 0 < first["hit_rate"] < 1 and first["within_30cm"] > 0, "the fixture should hold hits and successes"
 
 

@@ -20,6 +20,7 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from models.config import PolicyConfig
 from models.policy import make_policy, with_action_noise, with_integrating_action_noise
@@ -31,7 +32,7 @@ from ttmjx.world import thrower
 from ttmjx.world.backends import Backend, backend_kind
 from ttmjx.world.config import Table, World
 from ttmjx.world.env import uniform_goals
-from ttmjx.world.goals import goal_stats, region_success
+from ttmjx.world.goals import goal_stats, member_success, region_success
 from ttmjx.world.record import Trajectories
 
 
@@ -47,6 +48,7 @@ class PracticeStats(NamedTuple):
     middle_30cm: jax.Array
     far_30cm: jax.Array
     edges_30cm: jax.Array
+    members_30cm: jax.Array  # [N] within 30 cm of each member over the episodes it played
 
 
 class RoundParts(NamedTuple):
@@ -56,6 +58,7 @@ class RoundParts(NamedTuple):
     append: Callable     # (cache, traj, counted) -> cache
     train: Callable      # (state, cache, key) -> (state, loss [N])
     place: Callable      # tree [M, ...] -> the same, laid out over the devices that play it
+    block: int = 0       # episodes each ensemble member plays (M / N; 0: one policy)
 
 
 def practice_policy(pcfg: PolicyConfig, tcfg: TrainConfig):
@@ -68,13 +71,29 @@ def practice_policy(pcfg: PolicyConfig, tcfg: TrainConfig):
     return noisy(base, tcfg.action_noise)
 
 
-def practice_stats(traj: Trajectories, kept_before, kept_after, counted, table: Table) -> PracticeStats:
-    """Statistics over the round's first `counted` episodes (those within the run's budget)."""
+def practice_stats(traj: Trajectories, kept_before, kept_after, counted, table: Table, members: int = 1) -> PracticeStats:
+    """Statistics over the round's first `counted` episodes (those within the run's budget): the
+    totals, by goal region and by ensemble member (each plays an equal block of the round)."""
     first = jnp.arange(traj.hit.shape[0]) < counted
-    s = goal_stats(traj.landing, traj.goal, traj.hit, traj.on_opponent, xp=jnp, counted=first)
-    regions = region_success(traj.landing, traj.goal, traj.hit, traj.on_opponent, table, xp=jnp, counted=first)
+    outcome = (traj.landing, traj.goal, traj.hit, traj.on_opponent)
+    s = goal_stats(*outcome, xp=jnp, counted=first)
+    regions = region_success(*outcome, table, xp=jnp, counted=first)
     return PracticeStats(s["hit_rate"], s["on_table_rate"], s["within_30cm"], s["within_20cm"],
-                         (kept_after - kept_before).astype(jnp.int32), *regions)
+                         (kept_after - kept_before).astype(jnp.int32), *regions,
+                         member_success(*outcome, members, xp=jnp, counted=first))
+
+
+def stats_row(stats: dict) -> dict:
+    """One run's PracticeStats (host arrays by field name) as the metrics row's `practice_*`
+    columns; the per-member success becomes practice_member<i>_30cm."""
+    row = {}
+    for k, v in stats.items():
+        v = np.asarray(v)
+        if k == "members_30cm":
+            row.update({f"practice_member{i}_30cm": float(x) for i, x in enumerate(v.reshape(-1))})
+        else:
+            row[f"practice_{k}"] = float(v)
+    return row
 
 
 def round_keys(key):
@@ -98,8 +117,9 @@ def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, thro
     k_goal, k_roll, k_train = over(round_keys)(key)
     traj = parts.rollout(acting_params(state), k_roll, parts.place(throws), parts.place(parts.goals(k_goal)))
     new = parts.append(cache, traj, counted)
-    stats = over(lambda *a: practice_stats(*a, table))(jax.tree.map(jnp.asarray, traj), cache.count, new.count,
-                                                      counted)
+    members = traj.hit.shape[-1] // parts.block if parts.block else 1
+    stats = over(lambda *a: practice_stats(*a, table, members))(jax.tree.map(jnp.asarray, traj), cache.count,
+                                                               new.count, counted)
     state, loss = parts.train(state, new, k_train)
     return state, new, loss, stats
 
@@ -158,7 +178,7 @@ class Practice:
         train = self.train if not self.seeds else self.train_one
         return RoundParts(goals=lambda k: uniform_goals(k, m, world.table, goal_margin), rollout=rollout,
                           append=lambda c, t, n: add_episodes(c, t, world.table, keep_margin, counted=n), train=train,
-                          place=self.layout.constrain_throws)
+                          place=self.layout.constrain_throws, block=m // tcfg.members)
 
     def _compiled_round(self, pure: RoundParts):
         """MJX: the whole round in one jit. The throws, goals and episodes are split over the

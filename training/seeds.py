@@ -32,7 +32,7 @@ import numpy as np
 
 from training import budget, mesh, runlog
 from training.checkpoint import Checkpointed, Counters
-from training.practice import Practice
+from training.practice import Practice, stats_row
 from training.runconfig import RunConfig, to_json
 from training.trainer import (SEEDS_FILE, NonFiniteError, Run, finite_flags, install_stop_signals, is_eval_iteration,
                               phase, practice_iterations, pretrain_iterations, restore_signals, round_episodes,
@@ -163,7 +163,7 @@ class SeedRuns:
         if stats is not None:
             host = {k: np.asarray(v) for k, v in stats._asdict().items()}
             for s, row in enumerate(rows):
-                row.update({f"practice_{k}": float(v[s]) for k, v in host.items()})
+                row.update(stats_row({k: v[s] for k, v in host.items()}))
         if self.evaluate is not None and is_eval_iteration(cfg, it):
             metrics = self.evaluate(acting_params(state), self.backend, fold(base, 10**6 + it))
             for row, m in zip(rows, metrics):

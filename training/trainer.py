@@ -26,7 +26,7 @@ import numpy as np
 
 from training import budget, checkpoint, mesh, pool, runlog
 from training.checkpoint import Checkpointed, Counters
-from training.practice import Practice
+from training.practice import Practice, stats_row
 from training.runconfig import BOOKKEEPING, RunConfig, to_json
 from training.update import acting_params, init_train_state
 from ttmjx.tools.demos import LEGACY
@@ -316,7 +316,7 @@ class Run:
                "updates": int(ck.counters.updates), "cache_size": int(cache.size), "loss": float(np.mean(loss)),
                "seconds": _now() - t0}
         if stats is not None:
-            row.update({f"practice_{k}": float(v) for k, v in stats._asdict().items()})
+            row.update(stats_row(stats._asdict()))
         if self.evaluate is not None and is_eval_iteration(cfg, it):
             metrics = self.evaluate(self.layout.local(acting_params(state)), self.backend,
                                     jax.random.fold_in(base, 10**6 + it))

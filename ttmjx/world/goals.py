@@ -56,6 +56,20 @@ def region_success(landing, goal, hit, on_opponent, table: Table, xp=np, counted
     return xp.where(n > 0, (masks & ok[None]).sum(-1) / xp.maximum(n, 1), xp.nan)
 
 
+def member_success(landing, goal, hit, on_opponent, members: int, xp=np, counted=None):
+    """[members] within-30-cm success of each ensemble member over its own block of attempts: an
+    ensemble plays B attempts in `members` contiguous blocks of ceil(B / members) (the last may be
+    short), one per member (ttmjx.world.backends.batched_policy); counted [B] bool as goal_stats.
+    NaN for a member without attempts."""
+    ok = scored_distance(landing, goal, hit, on_opponent, xp) <= RADII[0]
+    b = ok.shape[0]
+    block = -(-b // members)
+    w = xp.ones(ok.shape, bool) if counted is None else counted
+    masks = (xp.arange(b)[None] // block == xp.arange(members)[:, None]) & w[None]
+    n = masks.sum(-1)
+    return xp.where(n > 0, (masks & ok[None]).sum(-1) / xp.maximum(n, 1), xp.nan)
+
+
 def goals_from_unit(u, table: Table, xp=np, margin: float = 0.0):
     """[n, 2] uniform numbers in [0, 1) -> [n, 2] goals uniform over the opponent's half, extended
     `margin` metres beyond its end line and both side lines (never over the net): x in
