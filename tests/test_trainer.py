@@ -387,3 +387,59 @@ def test_kill_9_at_random_moments_then_the_same_command_resumes_to_the_same_resu
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     rows = [json.loads(line) for line in open(run_dir / "metrics.jsonl")]
     assert [r["iteration"] for r in rows] == list(range(6))
+
+
+def test_report_explains_a_run_from_what_it_wrote(recorded_tiny_run, tmp_path):
+    """`ttmjx report`: each round's statistics as logged, the pool's landing shares against a
+    plain count over the checkpoint's pool, each row assigned to the round that kept it, the
+    files written; a directory that is not a run, or a run without practice, exits 2 naming it."""
+    import contextlib
+    import io
+    from eval.diagnostics import read_run, write_report
+    from training.checkpoint import load_checkpoint
+    from ttmjx.cli import main
+    from ttmjx.world.config import Table
+    run_dir, _ = recorded_tiny_run
+    out = write_report(str(run_dir), str(tmp_path / "report"))
+    with open(out["png"], "rb") as f:
+        assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+    with open(out["json"]) as f:
+        assert json.load(f)["rounds"]                       # strict JSON, as written
+    summary = out["summary"]
+    rows = [json.loads(line) for line in open(run_dir / "metrics.jsonl")]
+    practice = [r for r in rows if r["phase"] == "practice"]
+    assert [r["trajectories"] for r in summary["rounds"]] == [r["trajectories"] for r in practice]
+    for mine, row in zip(summary["rounds"], practice):
+        assert mine["good_per_100"] == pytest.approx(100 * row["practice_within_30cm"])
+        for k in ("near_30cm", "middle_30cm", "far_30cm", "edges_30cm", "member0_30cm", "member1_30cm"):
+            assert mine[k] == row[f"practice_{k}"] or (mine[k] is None and row[f"practice_{k}"] is None), k
+    evaluated = [r for r in rows if "eval_within_30cm" in r]
+    assert [e["member1_30cm"] for e in summary["evaluations"]] == [r["eval_member1_30cm"] for r in evaluated]
+
+    rec = read_run(str(run_dir))
+    for i, row in enumerate(practice):
+        assert (rec.round_of == i).sum() == row["practice_kept"]
+    assert rec.demo[rec.round_of == -1].all() and not rec.demo[rec.round_of >= 0].any()
+    cache = load_checkpoint(str(run_dir)).ck.cache
+    goal = np.asarray(cache.goal)[:int(cache.size)].astype(np.float64)
+    t = Table()
+    x, y = goal[:, 0], goal[:, 1]
+    on = (x >= 0) & (x <= t.half_length) & (np.abs(y) <= t.half_width)
+    want = {"off_half": ~on, "near": on & (x < t.half_length / 3),
+            "far": on & (x >= 2 * t.half_length / 3),
+            "edges": on & ((np.abs(y) > t.half_width - 0.2) | (x > t.half_length - 0.2))}
+    for region, mask in want.items():
+        assert summary["rounds"][-1]["pool_landings"][region] == pytest.approx(mask.mean()), region
+
+    for bad, why in ((tmp_path, "no config.json"), (run_dir / "checkpoints", "no config.json")):
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err), pytest.raises(SystemExit) as ex:
+            main(["report", str(bad)])
+        assert ex.value.code == 2 and why in err.getvalue() and str(bad) in err.getvalue(), err.getvalue()
+    lfp = tmp_path / "lfp"
+    lfp.mkdir()
+    for name in ("config.json", "checkpoints"):
+        os.symlink(run_dir / name, lfp / name)
+    (lfp / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows if r["phase"] != "practice"))
+    with pytest.raises(ValueError, match="no practice round yet"):
+        read_run(str(lfp))

@@ -203,6 +203,17 @@ class TrainArgs(Report):
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
+class ReportArgs(Report):
+    """Why a run learns or not: per practice round, the pool's landing density (demonstrations
+    and practice apart), success and good-per-100 by goal region, each ensemble member against
+    the ensemble, the training loss (report.json, report.png; docs/RESULTS.md)."""
+    run: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")]
+    """Run directory (ttmjx train --run-dir; one seed of a batch: RUN/seed<s>)."""
+    out: str | None = None
+    """Directory for report.json and report.png; None: RUN/report."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class EvalArgs(Report):
     """Goal-reaching metrics of a run's checkpoint (its moving-average policy)."""
     BOUNDS: ClassVar[dict] = {"per_goal": (1, batch_limit), "member": (0, None), "step": (0, None),
@@ -515,6 +526,16 @@ def train(a: TrainArgs) -> None:
         sys.exit(128 + out["stopped_by_signal"])   # the shell's convention for a signalled exit
 
 
+def run_report(a: ReportArgs) -> None:
+    from eval.diagnostics import write_report
+    out = write_report(a.run, a.out)
+    last = out["summary"]["rounds"][-1]
+    report(a, {k: out[k] for k in ("json", "png")} | {"last_round": last},
+           f"wrote {out['json']} and {out['png']}\n"
+           f"last round (trajectories {last['trajectories']}): good per 100 {last['good_per_100']:.1f}, "
+           f"pool landings off the half {100 * last['pool_landings']['off_half']:.1f}%")
+
+
 def evaluate(a: EvalArgs) -> None:
     from eval.evaluate import evaluate_checkpoint
     from training.seeds import pick_seed, seed_run_dirs, seed_spread
@@ -682,6 +703,8 @@ COMMANDS: dict[str, Command] = {
     "train": Command(TrainArgs, train, "GoalsEye training: demonstrations, GCBC, self-practice, evaluation",
                      parse_train),
     "eval": Command(EvalArgs, evaluate, "goal-reaching metrics of a run or checkpoint", resumes=False),
+    "report": Command(ReportArgs, run_report, "why a run learns or not: practice by goal region, members, pool density",
+                      resumes=False),
     "ablate": Command(AblateArgs, ablate, "a paper ablation: cells of (variant, seed) runs -> table, curves, landing maps"),
     "baseline": Command(BaselineArgs, baseline, "Table I: RL baselines (brax PPO, SAC, ES), GCSL, LFP and GoalsEye -> table, curves"),
     "export": Command(ExportArgs, export, "safetensors weights + contract + golden self-test + ONNX graph for the robot runner",
