@@ -39,6 +39,7 @@ def cases():
         ("train --preset tiny", "--train.batch-size", ["0"]), ("train --preset tiny", "--train.grad-clip", ["0"]),
         ("train --preset tiny", "--train.ema-decay", ["1.5", "-0.1"]),
         ("train --preset tiny", "--train.demo-fraction", ["2"]),
+        ("train --preset tiny", "--train.balance", ["-1", "3"]), ("report", "", ["{tmp}/missing", "{file}", "{empty}"]),
         ("train --preset tiny", "--train.action-noise", ["-0.1"]),
         ("train --preset tiny", "--train.practice-goal-margin", ["-0.1", "nan", "5"]),
         ("train --preset tiny", "--train.practice-keep", ["all", ""]),

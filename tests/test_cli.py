@@ -147,7 +147,7 @@ def flags(cls, prefix="--"):
 
 def test_every_subcommand_help_lists_every_field(capsys, monkeypatch):
     assert [*COMMANDS] == ["throw", "bench", "render", "sim", "demos", "plot-landings", "train", "eval",
-                           "ablate", "baseline", "export", "robot run", "robot sweep", "robot serve", "robot bench"]
+                           "report", "ablate", "baseline", "export", "robot run", "robot sweep", "robot serve", "robot bench"]
     assert len(list(flags(COMMANDS["train"].args))) > 100     # RunConfig's nested fields
     for name, cmd in COMMANDS.items():
         text = help_of(capsys, monkeypatch, *name.split())
@@ -246,5 +246,6 @@ def test_a_stop_says_whether_the_same_command_resumes(signal_name, exc, code, ca
         return err
     for name in ("train", "ablate", "baseline", "demos", "robot run", "robot sweep"):
         assert one_line(name).endswith("what was saved is kept: run the same command to resume")
-    for name in ("bench", "eval", "export", "throw", "sim", "render", "plot-landings", "robot bench", "robot serve"):
+    for name in ("bench", "eval", "report", "export", "throw", "sim", "render", "plot-landings", "robot bench",
+                 "robot serve"):
         assert one_line(name).endswith("it keeps no partial output: run the same command again")
