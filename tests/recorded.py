@@ -44,7 +44,11 @@ SAME_REL, SAME_ABS = 1e-5, 1e-9     # float rounding of one computation
 CROSS_CPU_LOSS_REL = 1e-3
 # Fields the runs write that the recordings predate (the paper's distance to goal over every
 # landing, ttmjx.world.goals.landed_mean_distance): a run's rows are compared on the others.
-ADDED_SINCE_THE_RECORDINGS = ("eval_mean_dist_landed",)
+# Since then too: success by goal region and by ensemble member (the diagnostics of `ttmjx
+# report`), summaries of the same episodes that change no other number.
+ADDED_SINCE_THE_RECORDINGS = ("eval_mean_dist_landed",
+                              *(f"{phase}_{part}_30cm" for phase in ("eval", "practice")
+                                for part in ("near", "middle", "far", "edges", "member0", "member1")))
 ACROSS_CPUS = ("iteration", "phase", "trajectories", "updates", "eval_goals")
 VECTOR_FLAGS = ("sse4_1", "sse4_2", "avx", "avx2", "fma", "avx512f", "avx512dq", "avx512bw", "avx512vl",
                 "avx512_bf16", "avx512_fp16", "avx_vnni", "amx_bf16", "amx_tile", "asimd", "sve")
