@@ -129,7 +129,7 @@ def plot_report(rec: RunRecord, summary: dict, png: str) -> str:
     import matplotlib.pyplot as plt
     table = _table_of(rec.config)
     fig, ax = plt.subplots(2, 3, figsize=(15, 8))
-    colours = dict(zip((*GOAL_REGIONS, "off_half"), ("C0", "C1", "C2", "C3", "C7")))
+    colours = dict(zip(POOL_REGIONS, ("C0", "C1", "C2", "C3", "C7")))
 
     ev, rounds = summary["evaluations"], summary["rounds"]
     a = ax[0, 0]

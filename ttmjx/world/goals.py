@@ -50,8 +50,14 @@ def region_success(landing, goal, hit, on_opponent, table: Table, xp=np, counted
     """[4] within-30-cm success over the attempts whose goal lies in each of GOAL_REGIONS (NaN
     for a region without attempts); counted [B] bool as goal_stats."""
     ok = scored_distance(landing, goal, hit, on_opponent, xp) <= RADII[0]
+    return success_within(ok, goal_regions(goal, table, xp), xp, counted)
+
+
+def success_within(ok, masks, xp=np, counted=None):
+    """[K] share of successes ok [B] among the counted attempts of each group masks [K, B]
+    (NaN for an empty group): the per-region and per-member success."""
     w = xp.ones(ok.shape, bool) if counted is None else counted
-    masks = goal_regions(goal, table, xp) & w[None]
+    masks = masks & w[None]
     n = masks.sum(-1)
     return xp.where(n > 0, (masks & ok[None]).sum(-1) / xp.maximum(n, 1), xp.nan)
 
@@ -64,10 +70,7 @@ def member_success(landing, goal, hit, on_opponent, members: int, xp=np, counted
     ok = scored_distance(landing, goal, hit, on_opponent, xp) <= RADII[0]
     b = ok.shape[0]
     block = -(-b // members)
-    w = xp.ones(ok.shape, bool) if counted is None else counted
-    masks = (xp.arange(b)[None] // block == xp.arange(members)[:, None]) & w[None]
-    n = masks.sum(-1)
-    return xp.where(n > 0, (masks & ok[None]).sum(-1) / xp.maximum(n, 1), xp.nan)
+    return success_within(ok, xp.arange(b)[None] // block == xp.arange(members)[:, None], xp, counted)
 
 
 def goals_from_unit(u, table: Table, xp=np, margin: float = 0.0):
