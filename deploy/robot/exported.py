@@ -317,6 +317,15 @@ def load_export(directory: str, expected_robot: str = ROBOT_MODEL_ID,
     return policy, runtime
 
 
+def read_weights(directory: str, expected_robot: str = ROBOT_MODEL_ID, expected_joints=JOINT_NAMES,
+                 robot_limits: Contract | None = Contract()) -> tuple[PolicySpec, dict]:
+    """(spec, weight tensors with a leading [members] axis) of an export, after every check of
+    load_export but the golden self-test: the weights for another engine (the JAX policy of
+    deploy.sim.parity)."""
+    _, _, _, spec, tensors = _checked_export(directory, expected_robot, expected_joints, robot_limits)
+    return spec, tensors
+
+
 def _checked_export(directory: str, expected_robot, expected_joints, robot_limits) -> tuple:
     """(verified files, contract, runtime Contract, spec, weight tensors) after every check of
     load_export but the golden self-test."""

@@ -13,7 +13,7 @@ newest samples delivered by the time the runner reads them, evaluated at j and f
 
 Start. With a tracker rate the runner's episode starts at the ball's first tracker sample, so
 the ball has flown `lead` physics steps (uniform in [0, E_ball)) when the episode starts; the
-runner notices the ball once its second sample is delivered (`trigger`), and the ticks before
+runner notices the ball once its second sample is delivered, jitter included (`trigger`), and the ticks before
 that (n < n_exec) are logged but not executed: the robot holds. Their frames are read like the others, from the samples delivered by the trigger (the
 runner may also interpolate toward a sample taken after the tick; the world, which has not
 simulated it yet, extrapolates: equal while the robot holds still and the tick falls after the
@@ -82,13 +82,28 @@ def draw(cfg: World, key) -> Draw:
     eb, ej = steps_per_sample(cfg, "tracker_hz"), steps_per_sample(cfg, "joint_hz")
     ball_lat = delays[0]
     lead = jax.random.randint(k_lead, (), 0, eb) if tm.tracker_hz is not None else jnp.int32(0)
-    # The runner notices the ball when its second sample (physics step E_ball) is delivered.
-    trigger = jnp.float32(eb) + ball_lat if tm.tracker_hz is not None else jnp.float32(0.0)
+    # The runner notices the ball when its second sample is delivered: physics step E_ball, its
+    # latency and its own jitter (the same per-sample draw `read` uses), or the next sample kept
+    # if that one was dropped.
+    trigger = trigger_step(cfg, eb, ball_lat, k_sample) if tm.tracker_hz is not None else jnp.float32(0.0)
     return Draw(ball_latency=ball_lat.astype(jnp.float32),
                 joint_latency=delays[1].astype(jnp.float32), action_delay=delays[2].astype(jnp.float32),
                 joint_phase=jax.random.randint(k_phase, (), 0, ej).astype(jnp.int32),
                 lead=jnp.asarray(lead, jnp.int32), trigger=trigger.astype(jnp.float32),
                 n_exec=jnp.ceil(trigger / cfg.substeps - 1e-6).astype(jnp.int32), key=k_sample)
+
+
+def trigger_step(cfg: World, every: int, latency, key):
+    """When the runner notices the ball (physics steps from tick 0): the delivery of the first
+    kept ball sample after the first, sample m at step m * every delivered latency + its jitter
+    later (jitter and drops drawn as `read` draws them, so the ticks before the trigger are read
+    from exactly the samples the runner holds when it fires)."""
+    tm = cfg.timing
+    m = jnp.arange(1, CANDIDATES + 1, dtype=jnp.int32)
+    jitter = _uniform(key, BALL, m, 0) * (tm.jitter_s / cfg.physics_dt) if tm.jitter_s else jnp.zeros(m.shape)
+    kept = _uniform(key, BALL, m, 1) >= tm.drop_prob if tm.drop_prob else jnp.ones(m.shape, bool)
+    i = jnp.argmax(kept)          # every candidate dropped: the first (a track that rare is not modelled)
+    return (m[i] * every + latency + jitter[i]).astype(jnp.float32)
 
 
 def fly(cfg: World, pos, vel, spin, steps):
