@@ -24,17 +24,21 @@ from ttmjx.world.goals import (GOAL_REGIONS, five_goals, goal_metrics, member_su
 from ttmjx.world.record import Trajectories
 
 
-def rollout_goals(world: World, pcfg: PolicyConfig, params, backend: Backend, key, goals, members=None):
+def rollout_goals(world: World, pcfg: PolicyConfig, params, backend: Backend, key, goals, members=None,
+                  truth: bool = False):
     """Trajectories [N] of the policy toward goals [N, 2], one throw each. An ensemble plays in
     equal blocks: goals and their throws are repeated cyclically up to a multiple of the members
-    and the repeats dropped, so every member count sees the same N goals and throws, once each."""
+    and the repeats dropped, so every member count sees the same N goals and throws, once each.
+    truth=True: (Trajectories, TrueTrack) [N], the simulation's true ball and joints beside them
+    (`ttmjx eval --out`; Backend.rollout)."""
     goals = np.asarray(goals, np.float32)
     k_throw, k_roll = jax.random.split(key)
     th = thrower.sample_throws(k_throw, world, len(goals))
     idx = padded(np.arange(len(goals)), members)
-    tr = backend.rollout(make_policy(pcfg), params, k_roll, jax.tree.map(lambda x: x[idx], th), goals[idx],
-                         members=members)
-    return Trajectories(*(x[:len(goals)] for x in tr))
+    out = backend.rollout(make_policy(pcfg), params, k_roll, jax.tree.map(lambda x: x[idx], th), goals[idx],
+                          members=members, truth=truth)
+    cut = lambda tree: type(tree)(*(x[:len(goals)] for x in tree))  # noqa: E731
+    return (cut(out[0]), cut(out[1])) if truth else cut(out)
 
 
 def padded(goals: np.ndarray, members: int | None) -> np.ndarray:
@@ -47,10 +51,15 @@ def padded(goals: np.ndarray, members: int | None) -> np.ndarray:
 def uniform_run(world: World, pcfg: PolicyConfig, params, backend: Backend, key, n_goals: int = 200,
                 members: int | None = None) -> tuple[dict, Trajectories]:
     """(goal_metrics, Trajectories [n_goals]) over n_goals uniform goals on the opponent's half."""
-    k_goal, k_run = jax.random.split(key)
-    goals = np.asarray(uniform_goals(k_goal, n_goals, world.table), np.float32)
+    goals, k_run = uniform_plan(world, key, n_goals)
     tr = rollout_goals(world, pcfg, params, backend, k_run, goals, members)
     return goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent), tr
+
+
+def uniform_plan(world: World, key, n_goals: int):
+    """(goals [n_goals, 2] uniform on the opponent's half, the rollout key) of uniform_run's `key`."""
+    k_goal, k_run = jax.random.split(key)
+    return np.asarray(uniform_goals(k_goal, n_goals, world.table), np.float32), k_run
 
 
 def evaluate_uniform(world: World, pcfg: PolicyConfig, params, backend: Backend, key, n_goals: int = 200,
@@ -80,10 +89,15 @@ def goal_set_run(world: World, pcfg: PolicyConfig, params, backend: Backend, key
                  members: int | None = None) -> tuple[dict, Trajectories]:
     """(goal_metrics, Trajectories [N]) of one attempt at each of the user's goals [N, 2]. The
     throws are those of a uniform evaluation of as many goals with the same key."""
-    goals = np.asarray(goals, np.float32)
-    _, k_run = jax.random.split(key)
+    goals, k_run = goal_set_plan(key, goals)
     tr = rollout_goals(world, pcfg, params, backend, k_run, goals, members)
     return goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent), tr
+
+
+def goal_set_plan(key, goals):
+    """(goals [N, 2], the rollout key) of goal_set_run's `key`: the key a uniform evaluation of
+    as many goals rolls out with, so a goal file is attempted on its throws."""
+    return np.asarray(goals, np.float32), jax.random.split(key)[1]
 
 
 def uniform_runs(world: World, pcfg: PolicyConfig, params, backend: Backend, keys, n_goals: int = 200,
@@ -163,16 +177,23 @@ def evaluate_checkpoint(path: str, goals: str = "200", per_goal: int = 40, distr
             raise ValueError(f"--member {member_index} is out of range: the run has {members} members")
         members, params = None, member(params, member_index)
     key = jax.random.PRNGKey(seed)
+    names = None      # the goals and rollout keys of goal_set_run, five_run and uniform_run
     if goal_set is not None:
-        res, tr = goal_set_run(world, cfg.policy, params, be, key, goal_set, members)
+        goals, k_run = goal_set_plan(key, goal_set)
     elif n_goals is None:
-        res, tr = five_run(world, cfg.policy, params, be, key, per_goal, members)
+        (goals, names), k_run = five_goals(per_goal), key
     else:
-        res, tr = uniform_run(world, cfg.policy, params, be, key, n_goals, members)
+        goals, k_run = uniform_plan(world, key, n_goals)
+    # With --out the rollout also carries the true ball (tracks.npz); the record is the same.
+    played = rollout_goals(world, cfg.policy, params, be, k_run, goals, members, truth=out is not None)
+    tr, true = played if out is not None else (played, None)
+    res = goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent)
+    if names is not None:
+        res["per_goal"] = per_goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent, list(names))
     res = {**res, "distribution": world.throws.name, "trajectories": int(loaded.ck.counters.trajectories),
            "step": loaded.step}
     if out is not None:
-        write_eval_dir(out, res, tr, world)
+        write_eval_dir(out, res, tr, world, true)
     return res
 
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from ttmjx.world import ballphysics, env, observation, scene, timing
 from ttmjx.world.config import World
-from ttmjx.world.record import Trajectories
+from ttmjx.world.record import Trajectories, TrueTrack
 
 @dataclasses.dataclass(frozen=True)
 class BackendKind:
@@ -190,6 +190,16 @@ def _record(cfg: World, lay: env.Layout, states: env.State, frames, vels, action
         launch_spin=states.launch[:, 6:9], aim=states.aim)
 
 
+def _true_track(lay: env.Layout, qpos, ball_steps, xp=jnp) -> TrueTrack:
+    """TrueTrack from qpos [B, T, nq] at the start of each control step and the ball [B, T, S, 3]
+    after each of its physics steps."""
+    b, t, s = ball_steps.shape[:3]
+    ball = qpos[:, :, lay.ball_qpos:lay.ball_qpos + 3]
+    fine = xp.concatenate([ball[:, :1], ball_steps.reshape(b, t * s, 3)], 1)
+    f32 = lambda x: xp.asarray(x, xp.float32)  # noqa: E731
+    return TrueTrack(ball=f32(ball), joints=f32(qpos[:, :, list(lay.robot_qpos)]), ball_physics=f32(fine))
+
+
 @functools.cache
 def _primitives(cfg: World, lay: env.Layout) -> tuple:
     """(reset, observe, command, controls, advance) batched over throws, jitted where they run
@@ -277,23 +287,26 @@ class Backend:
 
     # -- rollouts ------------------------------------------------------------------------
     def rollout(self, policy: Policy, params, key, throws, goals, horizon: int | None = None,
-                members: int | None = None) -> Trajectories:
+                members: int | None = None, truth: bool = False):
         """Roll `policy` out on B throws toward goals [B, 2]; returns the trajectory record
         with T = horizon (default cfg.horizon) steps.
 
         members=N: params carry a leading ensemble axis [N, ...]; throw b is played by member
-        b // (B / N) (B must be a multiple of N)."""
+        b // (B / N) (B must be a multiple of N).
+
+        truth=True: (record, TrueTrack), the simulation's true ball and joints beside what the
+        policy observed (evaluation and recording paths; the same draws and record)."""
         b = np.shape(throws.launch_pos)[0]
         goals = env.check_goals(goals, b)
         if members and b % members:
             raise ValueError(f"{b} throws cannot be split evenly over {members} ensemble members")
         t_max = horizon or self.cfg.horizon
         if self.kind.traceable:
-            key_ = ("mjx", policy, t_max, members)
+            key_ = ("mjx", policy, t_max, members) + (("truth",) if truth else ())
             if key_ not in self._rollouts:
-                self._rollouts[key_] = jax.jit(self.rollout_fn(policy, t_max, members))
+                self._rollouts[key_] = jax.jit(self.rollout_fn(policy, t_max, members, truth))
             return self._rollouts[key_](params, key, throws, jnp.asarray(goals))
-        return self._c_rollout(policy, params, key, throws, goals, t_max, members)
+        return self._c_rollout(policy, params, key, throws, goals, t_max, members, truth=truth)
 
     def rollout_seeds(self, policy: Policy, params, keys, throws, goals, members: int | None = None) -> Trajectories:
         """`rollout` of S independent runs at once: params leaves [S, ...], keys [S] (one rollout
@@ -335,9 +348,11 @@ class Backend:
             return carry, obs, self._command(states, action)
         return act
 
-    def _c_rollout(self, policy, params, key, throws, goals, t_max, members, seeds: int | None = None):
+    def _c_rollout(self, policy, params, key, throws, goals, t_max, members, seeds: int | None = None,
+                   truth: bool = False):
         """The host loop. With `seeds`=S, params [S, ...], key [S], throws and goals [S, B, ...]:
-        the compiled steps are vmapped over runs and the physics steps all S x B throws at once."""
+        the compiled steps are vmapped over runs and the physics steps all S x B throws at once.
+        truth (not with seeds): also the TrueTrack, kept on the host (no compiled program changes)."""
         ck = ("c", policy, members, seeds)
         if ck not in self._rollouts:
             init_b, _ = batched_policy(policy, members)
@@ -357,7 +372,7 @@ class Backend:
         else:
             flat = unflat = lambda tree: tree  # noqa: E731
         carry = init(params, split(k_init, lead[-1]))
-        frames, vels, actions, valids = [], [], [], []
+        frames, vels, actions, valids, qposs, balls = [], [], [], [], [], []
         flat_states = flat(states)
         for t in range(t_max):
             valid = ~np.asarray(flat_states.events.done)
@@ -366,6 +381,8 @@ class Backend:
             out = self._physics(flat_states, target)
             frames.append(flat(obs.frame)), vels.append(flat(obs.ball_vel)), actions.append(target)
             valids.append(valid)
+            if truth:
+                qposs.append(np.asarray(flat_states.qpos)), balls.append(np.asarray(out[2])[..., :3])
             flat_states = self._advance(flat_states, target, *out)
             states = unflat(flat_states) if seeds else flat_states
             if not valid.any():
@@ -378,11 +395,14 @@ class Backend:
         if seeds:
             per_step = [_as_if_alone(x, valid_arr, seeds) for x in per_step]
         rec = _record(self.cfg, self.lay, flat_states, *per_step, valid_arr)
-        return jax.tree.map(np.asarray, unflat(rec) if seeds else rec)
+        rec = jax.tree.map(np.asarray, unflat(rec) if seeds else rec)
+        return (rec, _true_track(self.lay, stack(qposs), stack(balls), np)) if truth else rec
 
-    def rollout_fn(self, policy: Policy, t_max: int | None = None, members: int | None = None):
+    def rollout_fn(self, policy: Policy, t_max: int | None = None, members: int | None = None,
+                   truth: bool = False):
         """MJX only: a pure, jittable `(params, key, throws, goals [B, 2]) -> Trajectories`
-        (no input validation: for use inside larger jit-compiled functions)."""
+        (no input validation: for use inside larger jit-compiled functions); truth=True:
+        -> (Trajectories, TrueTrack), a program of its own (practice's is unchanged)."""
         if not self.kind.traceable:
             raise ValueError(f"rollout_fn needs a traceable backend (mjx); {self.name} steps on the host")
         t_max = t_max or self.cfg.horizon
@@ -398,12 +418,16 @@ class Backend:
                 carry, states = c
                 valid = ~states.events.done
                 carry, obs, target = act(params, carry, states, jax.random.fold_in(k_act, t))
-                states = advance(states, target, *self._physics(states, target))
-                return (carry, states), (obs.frame, obs.ball_vel, target, valid)
+                out = self._physics(states, target)
+                ys = (obs.frame, obs.ball_vel, target, valid)
+                if truth:   # the state before the step and the ball after each physics step
+                    ys += (states.qpos, out[2][..., :3])
+                return (carry, advance(states, target, *out)), ys
 
-            (carry, states), (f, v, a, val) = jax.lax.scan(body, (carry, states), jnp.arange(t_max))
+            (carry, states), ys = jax.lax.scan(body, (carry, states), jnp.arange(t_max))
             sw = lambda x: jnp.swapaxes(x, 0, 1)  # noqa: E731
-            return _record(self.cfg, self.lay, states, sw(f), sw(v), sw(a), sw(val))
+            rec = _record(self.cfg, self.lay, states, *(sw(y) for y in ys[:4]))
+            return (rec, _true_track(self.lay, sw(ys[4]), sw(ys[5]))) if truth else rec
         return run
 
 

@@ -45,6 +45,19 @@ class Trajectories(NamedTuple):
         return int(self.obs.shape[0])
 
 
+class TrueTrack(NamedTuple):
+    """The simulation's truth beside a record of B throws of T control steps (S physics steps
+    each), where `obs` holds what the policy SAW: under a timing model (every preset but `tiny`)
+    the tracker's delayed, extrapolated ball and the delayed joint feedback, not the state.
+    Carried by evaluation and recording paths only (Backend.rollout(truth=True)), never by the
+    practice rollout. Table frame, m; steps after the episode ended (`valid` False) are not
+    meaningful."""
+    ball: "np.ndarray"           # [B, T, 3] the ball's centre at the start of each control step
+    joints: "np.ndarray"         # [B, T, 8] the joint positions at the start of each control step
+    ball_physics: "np.ndarray"   # [B, T * S + 1, 3] the ball's centre at the start and after each
+                                 #   physics step: ball_physics[:, t * S] == ball[:, t]
+
+
 FIELD_DTYPES = {
     "obs": np.float32, "ball_vel": np.float32, "actions": np.float32, "valid": np.bool_,
     "goal": np.float32, "hit": np.bool_, "hit_step": np.int32, "landing": np.float32,
@@ -103,9 +116,12 @@ def concat(parts: list[Trajectories]) -> Trajectories:
     return Trajectories(*(np.concatenate([getattr(p, f) for p in parts]) for f in Trajectories._fields))
 
 
-def save(directory: str, traj: Trajectories, meta: dict, name: str = "trajectories") -> str:
+def save(directory: str, traj: Trajectories, meta: dict, name: str = "trajectories",
+         extra: dict | None = None) -> str:
     """Write `name`.npz and `name`.meta.json into `directory`; refuses to overwrite, and writes
-    nothing for a record that does not validate."""
+    nothing for a record that does not validate. extra: more plain numeric arrays with a leading
+    [B] axis stored in the same .npz under their own names (the truth of `ttmjx demos`:
+    `true_ball_pos`, `true_joints`); `load` reads only the record, `extra_arrays` the rest."""
     path = os.path.join(directory, f"{name}.npz")
     meta_path = os.path.join(directory, f"{name}.meta.json")
     if os.path.exists(path) or os.path.exists(meta_path):
@@ -113,13 +129,29 @@ def save(directory: str, traj: Trajectories, meta: dict, name: str = "trajectori
                               f"(choose a new --out or delete it first)")
     traj = to_numpy(traj)
     validate(traj, path)
+    extra = {k: np.asarray(v) for k, v in (extra or {}).items()}
+    for k, v in extra.items():
+        if k in Trajectories._fields or v.dtype.kind not in "biuf" or v.shape[:1] != (traj.size,):
+            raise RecordError(f"{path}: extra array {k!r} ({v.dtype}, shape {v.shape}) must be a plain numeric "
+                              f"array of {traj.size} rows whose name is not a record field")
     os.makedirs(directory, exist_ok=True)
     tmp = path + ".tmp.npz"
-    np.savez(tmp, **traj._asdict())
+    np.savez(tmp, **traj._asdict(), **extra)
     os.replace(tmp, path)  # atomic: a crash never leaves a half-written dataset under the name
     files.write_json(meta_path, {"schema_version": SCHEMA_VERSION, "n": traj.size,
                                  "horizon": int(traj.obs.shape[1]), **meta})
     return path
+
+
+def extra_arrays(directory: str, name: str = "trajectories") -> dict:
+    """The arrays a dataset holds beside the record (`save`'s extra), by name; RecordError names
+    the file if it is unreadable."""
+    path, _ = dataset_files(directory, name)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files if k not in Trajectories._fields}
+    except Exception as e:  # zipfile.BadZipFile, EOFError, ValueError on truncation
+        raise RecordError(f"{path}: truncated or corrupt ({type(e).__name__}: {e})") from e
 
 
 def dataset_files(directory: str, name: str = "trajectories") -> tuple[str, str]:
