@@ -218,8 +218,10 @@ def summary(traj: record.Trajectories, cfg: World) -> dict:
 
 def collect(cfg: World, source: str, n: int, seed: int, backend: str = "c", chunk: int | None = None,
             progress: bool = False, params_dir: str | None = None,
-            pert: Perturbation | None = Perturbation()) -> record.Trajectories:
-    """n demonstrations in chunks on `backend`; [n, T, ...] record. pert: `source_policy`'s."""
+            pert: Perturbation | None = Perturbation(), truth: bool = False):
+    """n demonstrations in chunks on `backend`; [n, T, ...] record. pert: `source_policy`'s.
+    truth=True: (record, record.TrueTrack [n]), the true ball and joints beside what the policy
+    observed (the same record)."""
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
     policy, params = source_policy(cfg, source, params_dir, pert)
@@ -228,16 +230,31 @@ def collect(cfg: World, source: str, n: int, seed: int, backend: str = "c", chun
     # so progress shows and memory stays small.
     chunk = chunk or be.kind.demo_chunk
     key = jax.random.PRNGKey(seed)
-    parts = []
+    parts, truths = [], []
     bar = _bar(n, progress)
     for start in range(0, n, chunk):
         m = min(chunk, n - start)
         k_throw, k_roll = jax.random.split(jax.random.fold_in(key, start))
         th = thrower.sample_throws(k_throw, cfg, m)
-        parts.append(jax.tree.map(np.asarray, be.rollout(policy, params, k_roll, th, np.zeros((m, 2), np.float32))))
+        out = jax.tree.map(np.asarray, be.rollout(policy, params, k_roll, th, np.zeros((m, 2), np.float32),
+                                                  truth=truth))
+        parts.append(out[0] if truth else out)
+        if truth:
+            truths.append(out[1])
         bar.update(m)
     bar.close()
-    return record.concat(parts)
+    traj = record.concat(parts)
+    if not truth:
+        return traj
+    return traj, record.TrueTrack(*(np.concatenate(x) for x in zip(*truths)))
+
+
+def truth_arrays(true: record.TrueTrack) -> dict:
+    """The arrays a `ttmjx demos` dataset keeps beside its record (record.save's extra): the
+    ball's true centre and the true joints at the start of each control step, [B, T, 3] and
+    [B, T, 8] (the record's `obs` holds what the policy observed: under a timing model the
+    tracker's delayed view)."""
+    return {"true_ball_pos": np.asarray(true.ball, np.float32), "true_joints": np.asarray(true.joints, np.float32)}
 
 
 def _bar(n, on):
@@ -267,7 +284,7 @@ def make_dataset(cfg: World, source: str, n: int, seed: int, out: str, backend: 
         raise FileExistsError(f"{out} already holds a dataset; refusing to overwrite it")
     source = source_name(source)
     t0 = time.perf_counter()
-    traj = collect(cfg, source, n, seed, backend, progress=progress, params_dir=params_dir)
+    traj, true = collect(cfg, source, n, seed, backend, progress=progress, params_dir=params_dir, truth=True)
     seconds = time.perf_counter() - t0
     summ = summary(traj, cfg)
     narrow = None
@@ -281,7 +298,7 @@ def make_dataset(cfg: World, source: str, n: int, seed: int, out: str, backend: 
             "backend": backend, "code_version": code_version(), "seconds": seconds,
             "counts": {"hit": int(np.sum(traj.hit)), "returned": int(np.sum(traj.on_opponent))},
             **{k: v for k, v in summ.items() if k != "n"}, "world": to_dict(cfg)}
-    record.save(out, traj, meta)
+    record.save(out, traj, meta, extra=truth_arrays(true))
     path = os.path.join(out, "coverage.png")
     if narrow is not None:
         plot_bootstrap(narrow, traj, cfg, path)

@@ -16,7 +16,7 @@ import numpy as np
 
 from ttmjx.world import backends, env, files, observation, scene
 from ttmjx.world.config import World
-from ttmjx.world.record import Trajectories
+from ttmjx.world.record import Trajectories, TrueTrack
 
 # (MUJOCO_GL name, shared library, Debian package), in order of preference.
 GL_BACKENDS = (("egl", "EGL", "libegl1"), ("osmesa", "OSMesa", "libosmesa6"))
@@ -72,8 +72,10 @@ def policy_for(cfg: World, source: str) -> backends.Policy:
 
 
 def frames_of(cfg: World, traj: Trajectories, width: int = 480, height: int = 320, camera: str = "side",
-              every: int = 2) -> list[np.ndarray]:
-    """RGB frames [H, W, 3] replaying each throw's valid steps (every `every` control steps)."""
+              every: int = 2, true: TrueTrack | None = None) -> list[np.ndarray]:
+    """RGB frames [H, W, 3] replaying each throw's valid steps (every `every` control steps): the
+    true ball and joints of `true` (Backend.rollout(truth=True)), or without it what the policy
+    observed (under a timing model the tracker's delayed view, not where the ball was)."""
     m = scene.model(cfg)
     d = mujoco.MjData(m)
     lay = env.layout(m)
@@ -84,8 +86,10 @@ def frames_of(cfg: World, traj: Trajectories, width: int = 480, height: int = 32
             n = int(np.asarray(traj.valid[b]).sum())
             for t in range(0, max(n, 1), every):
                 d.qpos[:] = m.qpos0
-                d.qpos[list(lay.robot_qpos)] = observation.joints(traj.obs[b, t])
-                d.qpos[lay.ball_qpos:lay.ball_qpos + 3] = observation.ball_pos(traj.obs[b, t])
+                joints, ball = ((true.joints[b, t], true.ball[b, t]) if true is not None else
+                                (observation.joints(traj.obs[b, t]), observation.ball_pos(traj.obs[b, t])))
+                d.qpos[list(lay.robot_qpos)] = joints
+                d.qpos[lay.ball_qpos:lay.ball_qpos + 3] = ball
                 mujoco.mj_forward(m, d)
                 view.update_scene(d, camera=camera)
                 out.append(view.render().copy())
@@ -106,8 +110,8 @@ def render_throws(cfg: World, path: str, n: int = 3, seed: int = 0, source: str 
     key = jax.random.PRNGKey(seed)
     th = thrower.sample_throws(key, cfg, n)
     be = backends.Backend(cfg, "c")
-    traj = be.rollout(policy_for(cfg, source), None, key, th, np.zeros((n, 2), np.float32))
-    frames = frames_of(cfg, traj)
+    traj, true = be.rollout(policy_for(cfg, source), None, key, th, np.zeros((n, 2), np.float32), truth=True)
+    frames = frames_of(cfg, traj, true=true)
     imgs = [Image.fromarray(f) for f in frames]
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     buf = io.BytesIO()
