@@ -29,9 +29,14 @@ MuJoCo C physics, so the robot runner plays whole episodes exactly as against ha
   where a hit ball falls through table height outside the table; on_opponent = that table
   contact has x > 0; the throw is over when it landed or the ball fell below the table top.
 
+* Truth: every physics step of a throw in flight, from its launch until it is parked, the
+  ball's true centre and its time (`true_ball`), which the logs keep apart from the tracker's
+  samples (`with_truth`).
+
 `play(runner, station, goals, out_dir)` runs episodes like Runner.run_episodes, but completes each
 logged episode with the station's events (hit, hit_step, landing, on_opponent, ..., the true
-launch) before saving it, so the logs relabel like simulation data (`ttmjx train --data`).
+launch) and the true ball (`with_truth`) before saving it, so the logs relabel like simulation
+data (`ttmjx train --data`) and their landings can be recomputed from the truth.
 `run_sim(policy_dir, goals, ...)` is `ttmjx robot run --station sim`.
 """
 from __future__ import annotations
@@ -238,6 +243,7 @@ class SimStation:
         self.events: ThrowEvents | None = None       # the throw in flight (or the last one)
         self._world_events = env.no_events()           # its events as the world keeps them
         self._track: list = []                         # its steps not yet folded into them
+        self._truth: list = []                         # its (time, true ball centre [3]) per physics step
         q0 = self._place_robot(q0)
         self.t_origin = float(self.clock.now())
         self.n = 0                                        # physics steps taken
@@ -285,6 +291,12 @@ class SimStation:
         """[6] ball position and velocity (world)."""
         bq, bv = self.ids.ball_qpos, self.ids.ball_qvel
         return np.concatenate([self.d.qpos[bq:bq + 3], self.d.qvel[bv:bv + 3]])
+
+    def true_ball(self) -> tuple[np.ndarray, np.ndarray]:
+        """(times [P], true centre [P, 3]) of the last throw's ball, on the clock's time base: at
+        its launch and after every physics step until it was parked (empty before a launch)."""
+        t = np.array([x[0] for x in self._truth], np.float64)
+        return t, np.array([x[1] for x in self._truth], np.float64).reshape(-1, 3)
 
     def set_target(self, q: np.ndarray, now: float, part: str | None = None) -> None:
         """A command sent at `now` (all 8 joints, or `part` of PARTS alone: the arm and the
@@ -387,6 +399,7 @@ class SimStation:
         # Identity orientation at launch: the local angular velocity equals the world spin.
         self.d.qvel[bv:bv + 6] = np.concatenate([vel, spin])
         self.in_flight = True
+        self._truth = [(t, np.asarray(pos, np.float64).copy())]
         self.events = ThrowEvents(t, pos.copy(), vel.copy(), spin.copy(), aim.copy())
         self._world_events = env.no_events()
         self.throw_log.append(self.events)
@@ -443,6 +456,7 @@ class SimStation:
         if self.in_flight:
             self._track_step(prev)
             self._room()
+            self._truth.append((self.time, self.ball()[:3]))
         else:
             self._park()
         self._launch_if_due()
@@ -547,8 +561,27 @@ def station_hooks(runner: Runner, station: SimStation, throw_delay_s: float = 0.
         runner.disarm()
         station.finish_throw(finish_s)
 
-    return StationHooks(armed=armed, no_ball=no_ball, summary=summary,
-                        complete=lambda i, ep: complete_episode(ep, station.finish_throw(finish_s), runner.contract))
+    def complete(i, ep):
+        ev = station.finish_throw(finish_s)
+        return with_truth(complete_episode(ep, ev, runner.contract), station)
+
+    return StationHooks(armed=armed, no_ball=no_ball, summary=summary, complete=complete)
+
+
+def with_truth(ep: Episode, station: SimStation) -> Episode:
+    """The episode with the station's true ball among its runner arrays, named apart from the
+    tracker's samples (`ball_t`, `ball_xyz`, `ball_used_*`) and from what the policy saw (the
+    record's `obs`): `true_ball_t` [P] and `true_ball_xyz` [P, 3], the ball's centre (table frame,
+    m) at its launch and after every physics step until the throw was over (landing included);
+    `true_ball_pos` [T, 3], that centre at each tick's `t_grid` (linear between physics steps;
+    NaN for a tick outside the throw). Call after the throw is finished (finish_throw)."""
+    t, xyz = station.true_ball()
+    grid = np.asarray(ep.extras["t_grid"], np.float64)
+    at = np.full(grid.shape + (3,), np.nan)
+    if len(t):
+        inside = np.isfinite(grid) & (grid >= t[0] - 1e-12) & (grid <= t[-1] + 1e-12)
+        at[inside] = np.stack([np.interp(grid[inside], t, xyz[:, k]) for k in range(3)], -1)
+    return Episode(ep.traj, {**ep.extras, "true_ball_t": t, "true_ball_xyz": xyz, "true_ball_pos": at}, ep.meta)
 
 
 def command_safety(runner: Runner, station: SimStation) -> dict:
