@@ -7,17 +7,22 @@ Methods (the table's variants):
     ppo, sac, es   brax's trainers on training/baselines/env.py (training/baselines/agents.py),
                    their policy saved as a GoalsEye checkpoint and evaluated by the same final
                    evaluation as every ablation cell (eval/table_cells.py: same goals, same throws)
+    qtopt          QT-Opt on the same environment (training/baselines/qtopt.py); its policy, CEM
+                   over a Q-function, is no GoalsEye checkpoint: its curve and its final
+                   evaluation (the same goals and throws as every cell) are rolled out here, all
+                   seeds in one batch (`in_process_scores`); it cannot be exported
     gcsl           this project's trainer from 0 demonstrations (practice only)
     lfp            this project's trainer on demonstrations alone, as many as the budget
                    (practice off; GoalsEye's gradient updates: the `practice` ablation's
                    lfp-equal-data)
     goalseye       this project's trainer as configured (the reference row)
 
-All at the same trajectory budget. An ES or PPO cell saves its whole state after every epoch
-(training/baselines/resumable.py) and the same command resumes it; a SAC cell cut short by a
-signal is redone (brax's sac.train keeps its state inside one call); a finished cell is skipped.
+All at the same trajectory budget. An RL cell saves its whole state (a replay buffer included)
+at every curve point (training/baselines/resumable.py) and the same command resumes it; a
+finished cell is skipped.
 
-    OUT/runs/<method>-seed<s>/    the cell's run (RL: checkpoints/; ES, PPO also <method>_state/)
+    OUT/runs/<method>-seed<s>/    the cell's run (RL: <method>_state/, timing.json; brax's
+                                  methods also checkpoints/)
     OUT/results/<method>-seed<s>.json, OUT/table.md, curves.png, landings/, summary.json
 """
 from __future__ import annotations
@@ -29,6 +34,7 @@ import time
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from eval import ablate
 from eval import table_cells
@@ -68,7 +74,10 @@ def tiny_rl() -> dict:
                                      num_updates_per_batch=1, value_hidden=(16,)),
                 sac=agents.SACConfig(num_envs=2, batch_size=8, grad_updates_per_step=1, min_replay_size=16,
                                      max_replay_size=4096),
-                es=agents.ESConfig(population_size=1), num_evals=3, num_eval_envs=1, throw_pool=2)
+                es=agents.ESConfig(population_size=1),
+                qtopt=agents.QTOptConfig(num_envs=2, batch_size=8, grad_updates_per_step=1, min_replay_size=16,
+                                         max_replay_size=4096, hidden=(16,), target_lag=3),
+                num_evals=3, num_eval_envs=1, throw_pool=2)
 
 
 def method_config(method: str, scale: str, seed: int, run_dir: str, trajectories: int | None = None,
@@ -76,7 +85,7 @@ def method_config(method: str, scale: str, seed: int, run_dir: str, trajectories
     """The cell's configuration: a BaselineConfig (RL) or a RunConfig; ValueError naming the
     method and the problem. An RL cell runs exactly its budget: one that no whole number of the
     method's batches fills (or below one batch) is refused, naming the nearest budgets that are
-    (agents.schedule). `rl`: brax settings replacing the scale's ({'ppo': PPOConfig(...)})."""
+    (agents.schedule). `rl`: RL settings replacing the scale's ({'ppo': PPOConfig(...)})."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {METHODS}")
     base = ablate.cell_base(goalseye_base(scale), seed, run_dir, trajectories)
@@ -172,29 +181,82 @@ def _rl_program(cfgs: list, progress: bool) -> list[table_cells.Outcome]:
 
     finals = agents.train_seeds(cfgs, on_policy, timing=timing)
     backend = Backend(cfg.run.world, resolve_backend(cfg.run.backend))
+    policies = [[p for _, p in pts] for pts in points]
+    scores = (in_process_scores(cfgs, policies, finals, backend) if cfg.method not in agents.BRAX_METHODS
+              else [checkpoint_scores(c, ps, f, backend) for c, ps, f in zip(cfgs, policies, finals)])
     outcomes = []
-    for c, pts, params in zip(cfgs, points, finals):
-        run, t, own = c.run, time.perf_counter(), dict(timing)
-        metrics = curve_metrics(c, [p for _, p in pts], backend)
-        own["curve_eval_s"] = round(time.perf_counter() - t, 3)
+    for c, pts, (metrics, final, landings, seconds) in zip(cfgs, points, scores):
         curve = []
         for (steps, _), m in zip(pts, metrics):
             x = steps // h if steps % h == 0 else round(steps / h, 3)
             curve.append({"trajectories": x, "env_steps": steps, "updates": 0, "cache_size": 0, **m})
             if progress:
-                log(f"[baseline] {c.method} seed {run.seed} {x:,} trajectories: "
+                log(f"[baseline] {c.method} seed {c.run.seed} {x:,} trajectories: "
                     f"<=30cm {m['within_30cm']:.1%} hit {m['hit_rate']:.1%}", file=sys.stderr)
-        t = time.perf_counter()
-        agents.save_policy(c, params, run.total_trajectories)     # what brax ran: schedule() is exact
-        own["save_s"] = round(time.perf_counter() - t, 3)
-        t = time.perf_counter()
-        final, landings = table_cells.final_evaluation(run.run_dir)
-        own["final_eval_s"] = round(time.perf_counter() - t, 3)
-        own["env_steps"] = agents.schedule(c).num_timesteps
-        own["seeds_in_program"] = len(cfgs)
-        files.write_json(os.path.join(run.run_dir, "timing.json"), own)
+        own = {**timing, **seconds, "env_steps": agents.schedule(c).num_timesteps, "seeds_in_program": len(cfgs)}
+        files.write_json(os.path.join(c.run.run_dir, "timing.json"), own)
         outcomes.append(table_cells.Outcome(True, 0, final, curve, landings))
     return outcomes
+
+
+def checkpoint_scores(cfg: agents.BaselineConfig, policies: list, final, backend: Backend):
+    """(curve metrics, final metrics, landings, {part: seconds}) of one seed of brax's MLP
+    methods: its curve's policies in one rollout (curve_metrics), its final policy saved as a
+    GoalsEye checkpoint whose counter is the trajectories brax ran, then the cells' final
+    evaluation of that checkpoint."""
+    t = time.perf_counter()
+    metrics = curve_metrics(cfg, policies, backend)
+    seconds = {"curve_eval_s": round(time.perf_counter() - t, 3)}
+    t = time.perf_counter()
+    agents.save_policy(cfg, final, cfg.run.total_trajectories)     # what brax ran: schedule() is exact
+    seconds["save_s"] = round(time.perf_counter() - t, 3)
+    t = time.perf_counter()
+    final_metrics, landings = table_cells.final_evaluation(cfg.run.run_dir)
+    seconds["final_eval_s"] = round(time.perf_counter() - t, 3)
+    return metrics, final_metrics, landings, seconds
+
+
+def in_process_scores(cfgs: list, policies: list, finals: list, backend: Backend) -> list:
+    """checkpoint_scores for a policy no GoalsEye checkpoint holds (QT-Opt's CEM over Q:
+    qtopt.cem_policy), every seed's curve points and final policy in one rollout: each curve
+    point on run.eval_goals goals and throws from key run.seed + 1, as curve_metrics; each final
+    policy on those of table_cells.FINAL_EVAL_SEED, as table_cells.final_evaluation. Nothing is
+    saved (the policies stay in RUN/qtopt_state/)."""
+    from training.baselines import qtopt
+    cfg, t = cfgs[0], time.perf_counter()
+    runs = [(p, c.run.seed + 1) for c, ps in zip(cfgs, policies) for p in ps] + \
+        [(f, table_cells.FINAL_EVAL_SEED) for f in finals]
+    metrics, tr = policy_runs(cfg.run.world, qtopt.cem_policy(cfg), [p for p, _ in runs],
+                              [jax.random.PRNGKey(k) for _, k in runs], backend, cfg.run.eval_goals)
+    seconds = {"eval_s": round(time.perf_counter() - t, 3), "eval_runs": len(runs)}
+    out, first = [], 0
+    for i, ps in enumerate(policies):
+        last = len(runs) - len(finals) + i
+        landings = {"goal": np.asarray(tr.goal[last], np.float64).round(4).tolist(),
+                    "landing": np.asarray(tr.landing[last], np.float64).round(4).tolist(),
+                    "hit": np.asarray(tr.hit[last], bool).tolist(),
+                    "on_opponent": np.asarray(tr.on_opponent[last], bool).tolist()}
+        out.append((metrics[first:first + len(ps)], metrics[last], landings, seconds))
+        first += len(ps)
+    return out
+
+
+def policy_runs(world, policy, params: list, keys: list, backend: Backend, n_goals: int):
+    """eval.evaluate.uniform_runs for any one-member Policy (uniform_runs builds its own from a
+    PolicyConfig): run s plays policy with params[s] on the n_goals uniform goals and throws
+    that uniform_run(keys[s]) draws. Returns ([goal_metrics] per run, Trajectories [S, n_goals]).
+    tests/test_qtopt.py checks it against uniform_runs."""
+    from eval.evaluate import goal_metrics
+    from ttmjx.world import thrower
+    from ttmjx.world.env import uniform_goals
+    stacked = jax.tree.map(lambda *x: jnp.stack([jnp.asarray(a) for a in x]), *params)
+    split = jax.vmap(jax.random.split)
+    k_goal, k_run = jnp.moveaxis(split(jnp.stack(keys)), 1, 0)
+    goals = np.asarray(jax.vmap(lambda k: uniform_goals(k, n_goals, world.table))(k_goal), np.float32)
+    k_throw, k_roll = jnp.moveaxis(split(k_run), 1, 0)
+    throws = jax.vmap(lambda k: thrower.sample_throws(k, world, n_goals))(k_throw)
+    tr = backend.rollout_seeds(policy, stacked, k_roll, throws, goals)
+    return [goal_metrics(tr.landing[s], goals[s], tr.hit[s], tr.on_opponent[s]) for s in range(len(goals))], tr
 
 
 def curve_metrics(cfg: agents.BaselineConfig, policies: list, backend: Backend) -> list[dict]:

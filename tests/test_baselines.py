@@ -94,7 +94,7 @@ def test_reward_terms_on_a_scripted_hit(scripted):
     assert (done[:, -1] == 1).all() and (done[:, :-1] == 0).all()
 
 
-@pytest.mark.parametrize("method", agents.METHODS)
+@pytest.mark.parametrize("method", agents.BRAX_METHODS)
 def test_brax_policy_is_a_goalseye_framestack_policy(method):
     """The converted PolicyParams act exactly as brax's deterministic policy through GoalEnv's map."""
     from brax.training.acme import running_statistics
@@ -124,9 +124,10 @@ def brax_steps(method: str, cfg, num_timesteps: int, num_evals: int) -> int:
         env_step_per_training_step = cfg.ppo.batch_size * cfg.ppo.unroll_length * cfg.ppo.num_minibatches
         num_training_steps_per_epoch = math.ceil(num_timesteps / (evals_after_init * env_step_per_training_step))
         return evals_after_init * num_training_steps_per_epoch * env_step_per_training_step
-    if method == "sac":    # sac/train.py
-        num_envs = cfg.sac.num_envs
-        num_prefill_env_steps = -(-cfg.sac.min_replay_size // num_envs) * num_envs
+    if method in ("sac", "qtopt"):    # sac/train.py (QT-Opt's loop is SAC's)
+        c = cfg.sac if method == "sac" else cfg.qtopt
+        num_envs = c.num_envs
+        num_prefill_env_steps = -(-c.min_replay_size // num_envs) * num_envs
         num_training_steps_per_epoch = -(-(num_timesteps - num_prefill_env_steps) // (evals_after_init * num_envs))
         return num_prefill_env_steps + evals_after_init * num_training_steps_per_epoch * num_envs
     per_epoch = 2 * cfg.es.population_size * h   # es/train.py: epochs while steps < num_timesteps
@@ -140,8 +141,9 @@ def exact(cfg, trajectories: int) -> bool:
     h = cfg.run.world.horizon
     if cfg.method == "ppo":
         prefill, unit = 0, cfg.ppo.batch_size * cfg.ppo.unroll_length * cfg.ppo.num_minibatches
-    elif cfg.method == "sac":
-        prefill, unit = -(-cfg.sac.min_replay_size // cfg.sac.num_envs) * cfg.sac.num_envs, cfg.sac.num_envs
+    elif cfg.method in ("sac", "qtopt"):
+        c = cfg.sac if cfg.method == "sac" else cfg.qtopt
+        prefill, unit = -(-c.min_replay_size // c.num_envs) * c.num_envs, c.num_envs
     else:
         prefill, unit = 0, 2 * cfg.es.population_size * h
     return trajectories * h > prefill and (trajectories * h - prefill) % unit == 0
@@ -394,7 +396,7 @@ def test_sac_q_networks_are_the_policy_size():
     assert widths == {cfg.run.policy.hidden}
 
 
-@pytest.mark.parametrize("method", agents.METHODS)
+@pytest.mark.parametrize("method", agents.BRAX_METHODS)   # QT-Opt's: tests/test_qtopt.py
 def test_trains_evaluates_and_exports(method, tmp_path, monkeypatch):
     from brax.training import acting
 

@@ -19,7 +19,7 @@ WORLD = tiny().world
 
 
 # -- PPO, SAC and ES with their state outside brax's call (ppo.py, sac.py, es.py, resumable.py) --
-RESUMABLE = agents.METHODS
+RESUMABLE = agents.BRAX_METHODS   # against brax's own trainers; QT-Opt's resume: tests/test_qtopt.py
 BUDGET = {"ppo": 2, "sac": 2, "es": 4}   # trajectories: 2 epochs each (3 curve points)
 
 

@@ -23,7 +23,7 @@ from deploy.robot import cli as robot_side
 from ttmjx import commandline
 from ttmjx.commandline import Command, Flag, Report, check_new_path, fail, parse_args, report, table
 from eval.ablate import ABLATION_NAMES, SCALE_NAMES
-from training.baselines.config import ESConfig, PPOConfig, RewardConfig, SACConfig
+from training.baselines.config import ESConfig, PPOConfig, QTOptConfig, RewardConfig, SACConfig
 from training.runconfig import PRESET_NAMES, RunConfig, preset
 from ttmjx.world.backends import BACKENDS, backend_kind
 from ttmjx.world.config import CONTROL_RATES, THROW_DISTRIBUTIONS, World
@@ -272,15 +272,15 @@ class AblateArgs(Report):
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class BaselineArgs(Report):
-    """The paper's Table I on this world: RL baselines through brax (ppo, sac, es), GCSL, LFP and
-    GoalsEye at one trajectory budget, each (method, seed) a cell as in `ttmjx ablate`: a markdown
+    """The paper's Table I on this world: RL baselines (ppo, sac, es through brax; qtopt), GCSL,
+    LFP and GoalsEye at one trajectory budget, each (method, seed) a cell as in `ttmjx ablate`: a markdown
     table (mean +- 95% interval over seeds), learning curves, landing maps, JSON per cell. The seeds
     of a method train together as one program (RL seeds in groups, where all of them would not
     fit the GPU's memory). The same command skips finished cells and resumes
     cut ones (RL cells from the state saved after every epoch)."""
     BOUNDS: ClassVar[dict] = {"seeds": (1, 1000), "trajectories": (1, None)}
     method: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="METHOD")]
-    """ppo, sac, es, gcsl, lfp or goalseye; several comma-separated, or all."""
+    """ppo, sac, es, qtopt, gcsl, lfp or goalseye; several comma-separated, or all."""
     trajectories: int | None = None
     """Trajectories per cell; None: the scale's (full: 120,000, the paper's)."""
     seeds: int = 5
@@ -299,6 +299,8 @@ class BaselineArgs(Report):
     """brax SAC's settings at --scale full."""
     es: ESConfig = ESConfig()
     """brax ES's settings at --scale full."""
+    qtopt: QTOptConfig = QTOptConfig()
+    """QT-Opt's settings at --scale full (its CEM, target networks, replay; training/baselines/config.py)."""
     report: Flag = False
     """Only (re)build the table, curves, landing maps and summary from the finished cells."""
 
@@ -538,7 +540,9 @@ def run_report(a: ReportArgs) -> None:
 
 def evaluate(a: EvalArgs) -> None:
     from eval.evaluate import evaluate_checkpoint
+    from training.baselines.qtopt import check_exportable
     from training.seeds import pick_seed, seed_run_dirs, seed_spread
+    check_exportable(a.run)
     dirs = seed_run_dirs(a.run)
     if dirs is not None and a.seed_index is None:   # a batch of seeds: each one, then the spread
         if a.out:
@@ -611,7 +615,8 @@ def baseline(a: BaselineArgs) -> None:
     if a.report:
         summary = baselines.build_report(a.scale, out, command)
     else:
-        rl = {name: c for name, c in (("ppo", a.ppo), ("sac", a.sac), ("es", a.es)) if c != type(c)()}
+        rl = {name: c for name, c in (("ppo", a.ppo), ("sac", a.sac), ("es", a.es), ("qtopt", a.qtopt))
+              if c != type(c)()}
         summary = baselines.run(methods, a.scale, a.seeds, out, a.trajectories, a.reward, progress=not a.json,
                                 command=command, rl=rl, first_seed=a.seed)
     table_report(a, "baseline", summary, out)
@@ -620,7 +625,9 @@ def baseline(a: BaselineArgs) -> None:
 def export(a: ExportArgs) -> None:
     from deploy.robot.exported import load_export
     from deploy.sim.export import export_checkpoint
+    from training.baselines.qtopt import check_exportable
     from training.seeds import pick_seed
+    check_exportable(a.checkpoint)      # QT-Opt's policy is no checkpoint: one line, not "none found"
     path = export_checkpoint(pick_seed(a.checkpoint, a.seed_index), a.out, step=a.step, member=a.member,
                              ensemble=a.ensemble or a.member is None,
                              control_hz=a.control_hz, onnx={"auto": None, "on": True, "off": False}[a.onnx])
@@ -706,7 +713,7 @@ COMMANDS: dict[str, Command] = {
     "report": Command(ReportArgs, run_report, "why a run learns or not: practice by goal region, members, pool density",
                       resumes=False),
     "ablate": Command(AblateArgs, ablate, "a paper ablation: cells of (variant, seed) runs -> table, curves, landing maps"),
-    "baseline": Command(BaselineArgs, baseline, "Table I: RL baselines (brax PPO, SAC, ES), GCSL, LFP and GoalsEye -> table, curves"),
+    "baseline": Command(BaselineArgs, baseline, "Table I: RL baselines (brax PPO, SAC, ES; QT-Opt), GCSL, LFP and GoalsEye -> table, curves"),
     "export": Command(ExportArgs, export, "safetensors weights + contract + golden self-test + ONNX graph for the robot runner",
                       resumes=False),
     "robot run": robot_side.COMMANDS["robot run"]._replace(run=lambda a: robot_side.robot_run(a, sim_station)),

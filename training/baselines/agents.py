@@ -1,8 +1,11 @@
-"""PPO, SAC and ES on GoalEnv as brax 0.14.2's trainers run them, configured, not rewritten in
-substance: ppo.py, sac.py and es.py run brax's own epochs, from brax's pieces, with the state
-outside the call, so that a cell checkpoints every epoch and resumes (resumable.py); tests
-compare each with brax's ppo.train / sac.train / es.train. Their policy is saved as a GoalsEye
-checkpoint (training/checkpoint.py) so `ttmjx eval` and `ttmjx export` read it unchanged.
+"""The RL baselines: PPO, SAC and ES on GoalEnv as brax 0.14.2's trainers run them, configured,
+not rewritten in substance, and QT-Opt, which brax has not. ppo.py, sac.py and es.py run brax's
+own epochs, from brax's pieces, with the state outside the call, so that a cell checkpoints every
+epoch and resumes (resumable.py); tests compare each with brax's ppo.train / sac.train /
+es.train. Their policy is saved as a GoalsEye checkpoint (training/checkpoint.py) so `ttmjx eval`
+and `ttmjx export` read it unchanged. qtopt.py is QT-Opt on the same pieces and in SAC's loop;
+its policy (CEM over a Q-function) is no GoalsEye MLP: eval/baselines.py evaluates it in-process
+and it is not saved as a checkpoint (qtopt.py's docstring).
 
 Configuration choices (the rest are brax's defaults):
 
@@ -29,9 +32,9 @@ Configuration choices (the rest are brax's defaults):
   epoch (its policy_params_fn), SAC and ES at 0 and after each epoch that reaches an evaluation
   step (their evaluator). The points are only collected during training (and saved with the
   state); eval/baselines.py scores them all in one batched rollout at the end;
-* seeds: one cell after another in one process; each method's epoch is built once per
-  configuration whatever the seed (`parts`), so later seeds reuse the first one's compiled
-  epoch.
+* seeds: the seeds of a method as one program, their states stacked and the epoch vmapped
+  (resumable.run_seeds); each method's epoch is built once per configuration whatever the seed
+  (`parts`).
 
 The conversion (`policy_params`): brax's policy MLP hidden_i -> MLPNet dense_i, its mean head ->
 head; brax's observation normalization (x - m) / s per input value folded into the first layer
@@ -55,24 +58,27 @@ from models.normalizer import Normalizer
 from models.policy import PolicyParams
 from training import checkpoint
 from training.baselines import resumable
-from training.baselines.config import ESConfig, PPOConfig, RewardConfig, SACConfig  # noqa: F401 (re-exported)
+from training.baselines.config import ESConfig, PPOConfig, QTOptConfig, RewardConfig, SACConfig  # noqa: F401 (re-exported)
 from training.baselines.env import reach
 from training.runconfig import RunConfig, to_json
 
-METHODS = ("ppo", "sac", "es")
+BRAX_METHODS = ("ppo", "sac", "es")
+"""brax's trainers: their policy is brax's MLP, converted into a GoalsEye checkpoint (policy_params)."""
+METHODS = (*BRAX_METHODS, "qtopt")
 
 
 @dataclasses.dataclass(frozen=True)
 class BaselineConfig:
     """One RL baseline run: the method, the GoalsEye RunConfig it is compared with (its world, the
     policy MLP size, trajectory budget, evaluation goals, seed and run directory), the reward and
-    the method's brax settings."""
-    method: Literal["ppo", "sac", "es"]
+    the method's settings."""
+    method: Literal["ppo", "sac", "es", "qtopt"]
     run: RunConfig
     reward: RewardConfig = RewardConfig()
     ppo: PPOConfig = PPOConfig()
     sac: SACConfig = SACConfig()
     es: ESConfig = ESConfig()
+    qtopt: QTOptConfig = QTOptConfig()
     num_evals: int = 5
     """Learning-curve points asked for, the one at 0 trajectories included (strict metric on
     run.eval_goals goals wherever brax hands its policy out). brax's epochs must divide the
@@ -119,19 +125,20 @@ class Schedule:
     trajectories: int
     """num_timesteps / horizon: the trajectories consumed (<= the budget)."""
     units: int
-    """Training steps (PPO: one batch; SAC: one actor step of every environment) or ES epochs,
-    after SAC's replay prefill."""
+    """Training steps (PPO: one batch; SAC, QT-Opt: one actor step of every environment) or ES
+    epochs, after SAC's or QT-Opt's replay prefill."""
 
 
 def _units(cfg: BaselineConfig) -> tuple[int, int]:
     """(prefill, unit): brax's environment steps before training (SAC's replay prefill, rounded
-    up to whole actor steps as brax does) and per training step / ES epoch."""
+    up to whole actor steps as brax does; QT-Opt's loop is SAC's) and per training step / ES
+    epoch."""
     h = cfg.run.world.horizon
     if cfg.method == "ppo":   # ppo/train.py: env_step_per_training_step (action_repeat 1)
         p = cfg.ppo
         return 0, p.batch_size * p.unroll_length * p.num_minibatches
-    if cfg.method == "sac":   # sac/train.py: num_prefill_env_steps, env_steps_per_actor_step
-        s = cfg.sac
+    if cfg.method in ("sac", "qtopt"):   # sac/train.py: num_prefill_env_steps, env_steps_per_actor_step
+        s = cfg.sac if cfg.method == "sac" else cfg.qtopt
         return -(-s.min_replay_size // s.num_envs) * s.num_envs, s.num_envs
     return 0, 2 * cfg.es.population_size * h   # es/train.py: 2 * population episodes of h steps
 
@@ -145,7 +152,8 @@ def brax_env_steps(cfg: BaselineConfig, num_timesteps: int, num_evals: int) -> i
         sac/train.py  prefill, then max(E - 1, 1) epochs of ceil((T - prefill) / (max(E - 1, 1)
                       * num_envs)) actor steps
         es/train.py   whole epochs of 2 * population_size episodes while steps < T (an episode
-                      is `horizon` steps: RewardConfig.end_at_landing False)"""
+                      is `horizon` steps: RewardConfig.end_at_landing False)
+        qtopt.py      as sac/train.py (its loop)"""
     prefill, unit = _units(cfg)
     epochs = max(num_evals - 1, 1)
     if cfg.method == "es":
@@ -198,7 +206,8 @@ def schedule(cfg: BaselineConfig, trajectories: int | None = None) -> Schedule:
     below, above = exact_budgets(cfg, n)
     what = {"ppo": f"training steps of {unit // h:,} trajectories",
             "sac": f"a replay prefill of {prefill:,} steps, then actor steps of {unit:,} environment steps",
-            "es": f"updates of {unit // h:,} episodes"}[cfg.method]
+            "es": f"updates of {unit // h:,} episodes",
+            "qtopt": f"a replay prefill of {prefill:,} steps, then actor steps of {unit:,} environment steps"}[cfg.method]
     if below is None:
         raise ValueError(f"trajectory budget {n:,} is below one batch of {cfg.method} ({what}); "
                          f"the smallest budget is {above:,}")
@@ -255,8 +264,8 @@ def es_networks(cfg: BaselineConfig):
 
 # -- training ----------------------------------------------------------------------------------
 def _method(name: str):
-    from training.baselines import es, ppo, sac
-    return {"ppo": ppo, "sac": sac, "es": es}[name]
+    from training.baselines import es, ppo, qtopt, sac
+    return {"ppo": ppo, "sac": sac, "es": es, "qtopt": qtopt}[name]
 
 
 def device_bytes_limit() -> int | None:
@@ -307,11 +316,11 @@ def out_of_memory(err: BaseException) -> bool:
 
 
 def train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | None = None):
-    """Run the method's loop (ppo.py, sac.py, es.py: brax's epochs, the state checkpointed under
-    RUN/<method>_state/ and resumed from there) on schedule(cfg); returns the final policy as
-    PolicyParams.
+    """Run the method's loop (ppo.py, sac.py, es.py: brax's epochs; qtopt.py; the state
+    checkpointed under RUN/<method>_state/ and resumed from there) on schedule(cfg); returns the
+    final policy (handed_out: PolicyParams, or QT-Opt's QParams).
 
-    on_policy(env_steps, PolicyParams) is called at every learning-curve point (brax's: step 0
+    on_policy(env_steps, policy) is called at every learning-curve point (brax's: step 0
     and the end of each of its epochs; env_steps is brax's own count, the last one exactly
     schedule(cfg).num_timesteps; a resumed run replays the points before its checkpoint);
     progress(env_steps, metrics) gets the epoch's training metrics. `timing`, a dict, receives
@@ -324,8 +333,8 @@ def train(cfg: BaselineConfig, on_policy=None, progress=None, timing: dict | Non
 def train_seeds(cfgs: list[BaselineConfig], on_policy=None, progress=None, timing: dict | None = None) -> list:
     """train() for configurations that differ only in seed and run directory, as one program
     (their states stacked, the epoch vmapped: resumable.run_seeds); one configuration runs
-    unbatched, as brax does. on_policy(i, env_steps, PolicyParams) for seed i. Returns the final
-    PolicyParams of each."""
+    unbatched, as brax does. on_policy(i, env_steps, policy) for seed i. Returns the final policy
+    of each (handed_out)."""
     timing = {} if timing is None else timing
     cfg, n = cfgs[0], len(cfgs)
     for c in cfgs[1:]:
@@ -342,7 +351,7 @@ def train_seeds(cfgs: list[BaselineConfig], on_policy=None, progress=None, timin
         if i == 0:
             timing["points"].append((int(step), round(time.perf_counter() - t0, 3)))
         if on_policy is not None:
-            on_policy(i, int(step), policy_params(cfg, normalizer, policy))
+            on_policy(i, int(step), handed_out(cfg, normalizer, policy))
 
     method = _method(cfg.method)
     fresh = [functools.partial(method.initial_state, c, sched.num_timesteps, sched.num_evals) for c in cfgs]
@@ -364,7 +373,7 @@ def train_seeds(cfgs: list[BaselineConfig], on_policy=None, progress=None, timin
             raise RuntimeError(f"{cfg.method} ran {ran} environment steps; schedule() expected "
                                f"{sched.num_timesteps} (has brax's arithmetic changed? see brax_env_steps)")
     timing["train_s"] = round(time.perf_counter() - t0, 3)
-    return [policy_params(cfg, *f) for f in finals]
+    return [handed_out(cfg, *f) for f in finals]
 
 
 def state_json(cfg: BaselineConfig) -> dict:
@@ -376,6 +385,16 @@ def state_json(cfg: BaselineConfig) -> dict:
     return {"method": cfg.method, cfg.method: settings, "reward": dataclasses.asdict(cfg.reward),
             "throw_pool": cfg.throw_pool, "num_evals": cfg.num_evals,
             **{k: run[k] for k in ("seed", "world", "policy", "total_trajectories")}}
+
+
+def handed_out(cfg: BaselineConfig, normalizer, params):
+    """The policy a loop hands out, as the evaluation plays it: brax's MLP methods' as a GoalsEye
+    framestack PolicyParams (policy_params); QT-Opt's as its (statistics, Q) (qtopt.QParams,
+    played by qtopt.cem_policy)."""
+    if cfg.method == "qtopt":
+        from training.baselines.qtopt import QParams
+        return QParams(normalizer, params)
+    return policy_params(cfg, normalizer, params)
 
 
 def policy_params(cfg: BaselineConfig, normalizer, brax_policy) -> PolicyParams:
@@ -399,8 +418,11 @@ def policy_params(cfg: BaselineConfig, normalizer, brax_policy) -> PolicyParams:
 
 def save_policy(cfg: BaselineConfig, params: PolicyParams, trajectories: int, step: int = 1) -> str:
     """Write `params` as a GoalsEye checkpoint of cfg.run (one member; the optimizer state and
-    the cache are the template's, empty) under cfg.run.run_dir/checkpoints; returns the directory."""
+    the cache are the template's, empty) under cfg.run.run_dir/checkpoints; returns the directory.
+    brax's MLP methods only: QT-Opt's policy is no MLP (qtopt.check_exportable)."""
     import os
+    if cfg.method not in BRAX_METHODS:
+        raise ValueError(f"{cfg.method}'s policy is not an MLP: it has no GoalsEye checkpoint")
     tmpl = checkpoint.template(cfg.run)
     one = jax.tree.map(lambda x: jnp.asarray(x)[None], params)
     state = tmpl.state._replace(params=one, ema=one)

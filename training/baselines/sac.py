@@ -67,25 +67,7 @@ def keys(seed: int):
     return global_key, rb_key, env_key, local_key
 
 
-def _seeds_queue(replay_buffers):
-    """brax 0.14.2's UniformSamplingQueue whose insert rolls the buffer under a predicate shared
-    by the seeds (resumable.any_seed): brax's lax.cond on the insert position would become a
-    select under the seeds' vmap, rolling every seed's whole buffer at every step. A seed whose
-    roll is 0 keeps its data as it is, so each seed inserts exactly as brax's queue does."""
-
-    class SeedsQueue(replay_buffers.UniformSamplingQueue):
-        def insert_internal(self, buffer_state, samples):
-            if buffer_state.data.shape != self._data_shape:
-                raise ValueError(f"replay buffer data shape {buffer_state.data.shape}; expected {self._data_shape}")
-            update = self._flatten_fn(samples)
-            data, position = buffer_state.data, buffer_state.insert_position
-            roll = jnp.minimum(0, len(data) - position - len(update))
-            data = jax.lax.cond(resumable.any_seed(roll != 0), lambda: jnp.roll(data, roll, axis=0), lambda: data)
-            position = position + roll
-            data = jax.lax.dynamic_update_slice_in_dim(data, update, position, axis=0)
-            return buffer_state.replace(data=data, insert_position=(position + len(update)) % (len(data) + 1),
-                                        sample_position=jnp.maximum(0, buffer_state.sample_position + roll))
-    return SeedsQueue
+_seeds_queue = resumable.seeds_queue   # (moved: QT-Opt's loop shares it)
 
 
 @functools.lru_cache(maxsize=4)
