@@ -370,6 +370,33 @@ class RobotSweepArgs(Report):
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
+class RobotParityArgs(Report):
+    """An export played twice on the same throws, goals, start poses and timing draws: by the
+    training world (MuJoCo C or MJX) and by the robot runner on the simulated station; per
+    control step where the frames and the sent commands first part, then both sides' hits,
+    landings and strict metrics (deploy/sim/parity.py)."""
+    BOUNDS: ClassVar[dict] = {"n": (1, 100_000)}
+    policy: str
+    """An export directory (ttmjx export --out), with its timing record."""
+    n: int = 16
+    """Uniform goals (episodes): the draw of `ttmjx eval --goals N --seed S`."""
+    seed: int = 1234
+    """Seed of the goals, throws, start poses and timing draws."""
+    backend: Backend = "c"
+    """The world's physics: MuJoCo C or MJX (the station is always MuJoCo C)."""
+    timing: str = "trained"
+    """trained (the export's timing, its per-episode delays drawn), centre (fixed at its centre) or a
+    profile (nominal, zero)."""
+    out: str | None = None
+    """Directory for parity.json and parity.png (new or empty)."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.out is not None:
+            check_new_path("out", self.out, want_dir=True)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class RobotServeArgs(Report):
     """Serve the simulated station over the cell's protocols (EGM, Modbus TCP, tracker UDP,
     launcher) in real time, for `ttmjx robot run --station cell` (docs/ROBOT.md)."""
@@ -665,6 +692,12 @@ def robot_sweep(a: RobotSweepArgs) -> None:
     report(a, out, sweep_table(out) + f"\nwrote {a.out}/sweep.json and sweep.png")
 
 
+def robot_parity(a: RobotParityArgs) -> None:
+    from deploy.sim.parity import parity_table, run_parity
+    out = run_parity(a.policy, a.n, a.seed, a.backend, a.timing, a.out)
+    report(a, out, parity_table(out) + (f"\nwrote {a.out}/parity.json and parity.png" if a.out else ""))
+
+
 def robot_serve(a: RobotServeArgs) -> None:
     from deploy.robot.contract import contract_from_world
     from deploy.robot.drivers.config import load_cell_config
@@ -718,6 +751,8 @@ COMMANDS: dict[str, Command] = {
                       resumes=False),
     "robot run": robot_side.COMMANDS["robot run"]._replace(run=lambda a: robot_side.robot_run(a, sim_station)),
     "robot sweep": Command(RobotSweepArgs, robot_sweep, "strict success against added ball and command latency"),
+    "robot parity": Command(RobotParityArgs, robot_parity, "the world and the runner on the same draws: where they part",
+                            resumes=False),
     "robot serve": Command(RobotServeArgs, robot_serve, "serve the simulated station over EGM, Modbus TCP and UDP (rehearsal)",
                            resumes=False),
     "robot bench": robot_side.COMMANDS["robot bench"],
