@@ -15,9 +15,10 @@
   bool, the steps played (the episode had not ended before them: the landing lies in the last
   valid step, so the sample after it is the ball after the landing); hit_step [N] int32, the
   control step of the first paddle contact (-1: no hit); control_hz; physics_dt (s);
-  table_top_z and ball_radius (m). A landing is where the ball, after the hit, first comes down
-  through table_top_z + ball_radius (tests/test_true_tracks.py recomputes every landing from
-  ball_pos_physics within 1 cm).
+  table_top_z and ball_radius (m); net_zone (m, ttmjx.world.env.net_zone). A landing is where
+  the ball, after the hit, first comes down through table_top_z + ball_radius, a contact whose
+  lowest point lies within net_zone of the net (|x|) being the net's (tests/test_true_tracks.py
+  recomputes every landing from ball_pos_physics within 1 cm).
 
 Every file is written atomically (ttmjx.world.files); summary.json last, so a directory holding it
 is complete.
@@ -30,7 +31,7 @@ import os
 
 import numpy as np
 
-from ttmjx.world import files
+from ttmjx.world import env, files
 from ttmjx.world.config import World
 from ttmjx.world.goals import RADII, scored_distance
 from ttmjx.world.record import OBS_BALL, Trajectories, TrueTrack
@@ -67,7 +68,7 @@ def tracks(traj: Trajectories, world: World, true: TrueTrack | None) -> dict:
     record that carries no truth) the observed arrays alone, never the observation as the truth."""
     out = {"ball_observed": np.asarray(traj.obs, np.float32)[:, :, OBS_BALL], "valid": np.asarray(traj.valid, bool),
            "hit_step": np.asarray(traj.hit_step, np.int32), "control_hz": np.int32(world.control_hz),
-           "physics_dt": np.float64(world.physics_dt),
+           "physics_dt": np.float64(world.physics_dt), "net_zone": np.float64(env.net_zone(world)),
            "table_top_z": np.float64(world.table.top_z), "ball_radius": np.float64(world.ball.radius)}
     if true is not None:
         out.update(ball_pos=np.asarray(true.ball, np.float32), joints=np.asarray(true.joints, np.float32),

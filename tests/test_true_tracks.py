@@ -13,6 +13,7 @@ import jax
 import numpy as np
 import pytest
 
+from ttmjx.world import env
 from ttmjx.world.config import CELL_TRAINING, World
 
 DATA = os.path.join(os.path.dirname(__file__), "data")
@@ -21,15 +22,18 @@ CONTACT_Z = WORLD.table.top_z + WORLD.ball.radius
 GOALS = [[0.7, 0.0], [0.4, 0.3], [1.0, -0.3], [0.6, 0.5]]
 
 
-def first_crossing(t, xyz, after: float, height: float = CONTACT_Z):
+def first_crossing(t, xyz, after: float, height: float = CONTACT_Z, net_zone: float = env.net_zone(WORLD)):
     """(x, y, time) where the track [P, 3] at times t [P] first comes down through `height` after
-    time `after`, linear between samples; None if it never does: the landing's definition."""
-    down = np.flatnonzero((t[1:] > after) & (xyz[:-1, 2] >= height) & (xyz[1:, 2] < height)) + 1
-    if not len(down):
-        return None
-    j = down[0]
-    f = (xyz[j - 1, 2] - height) / (xyz[j - 1, 2] - xyz[j, 2])
-    return (*(xyz[j - 1, :2] + f * (xyz[j, :2] - xyz[j - 1, :2])), t[j])
+    time `after`, linear between samples, or None: the landing's definition (docs/DATA.md). A dip
+    whose lowest sample (of its first 10) lies within `net_zone` of the net is the net's contact
+    (ttmjx.world.env.contact_kinds), not a landing."""
+    for j in np.flatnonzero((t[1:] > after) & (xyz[:-1, 2] >= height) & (xyz[1:, 2] < height)) + 1:
+        low = j + int(np.argmin(xyz[j:j + 10, 2]))
+        if abs(xyz[low, 0]) < net_zone:
+            continue
+        f = (xyz[j - 1, 2] - height) / (xyz[j - 1, 2] - xyz[j, 2])
+        return (*(xyz[j - 1, :2] + f * (xyz[j, :2] - xyz[j - 1, :2])), t[j])
+    return None
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +82,8 @@ def test_every_landing_of_a_cell_timing_evaluation_is_recomputed_from_tracks_wit
         if r["landing_x"] == "":
             continue
         hit_end = (int(t["hit_step"][i]) + 1) * dt       # the hit's control step is over
-        x, y, at = first_crossing(times, t["ball_pos_physics"][i].astype(np.float64), hit_end - 1e-9, height)
+        x, y, at = first_crossing(times, t["ball_pos_physics"][i].astype(np.float64), hit_end - 1e-9, height,
+                                  float(t["net_zone"]))
         landing = np.array([float(r["landing_x"]), float(r["landing_y"])])
         assert np.hypot(x - landing[0], y - landing[1]) <= 0.01, (i, (x, y), landing)
         last = int(np.flatnonzero(t["valid"][i])[-1])

@@ -12,10 +12,17 @@ Per tick (T = contract horizon):
   raw_actions [T, 8]   the policy's output (NaN where it was not called)
   commands [T, 8]      the target sent (= Trajectories.actions; the held target on skipped ticks)
   faults [T]       int32 fault bits (deploy.robot.safety.FAULTS)
-  ball_used_t [T, 2], ball_used_xyz [T, 2, 3]    the two ball samples interpolated
+  ball_used_t [T, 2], ball_used_xyz [T, 2, 3]    the two tracker samples interpolated
   joint_used_t [T, 2], joint_used_q [T, 2, 8]    the two joint samples interpolated
 Raw streams, everything received during the episode (accepted or not):
-  ball_t [N], ball_xyz [N, 3], ball_ok [N];  joint_t [M], joint_q [M, 8], joint_ok [M]
+  ball_t [N], ball_xyz [N, 3], ball_ok [N]   the tracker's samples (sample time, position)
+  joint_t [M], joint_q [M, 8], joint_ok [M]  the joint feedback
+Times are the runner's clock; positions table frame, m. The record's `obs` holds what the policy
+saw: the line through the two tracker samples used, evaluated at the tick. None of these is
+the ball's true position: only the simulated station knows it, and adds (deploy.sim.station.with_truth)
+  true_ball_t [P], true_ball_xyz [P, 3]   the true centre at the launch and every physics step
+                                          until the throw was over (landing included)
+  true_ball_pos [T, 3]                    the true centre at each tick's t_grid (NaN outside)
 """
 from __future__ import annotations
 

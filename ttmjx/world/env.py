@@ -27,6 +27,12 @@ from ttmjx.world.goals import goals_from_unit
 CONTACT_DV = 0.05
 
 
+def net_zone(cfg: World) -> float:
+    """|x| (m) within which a contact low enough is the net's, not the table's (contact_kinds):
+    a ball bouncing on the table this close to the net touches it."""
+    return cfg.table.net_thickness / 2 + cfg.ball.radius + 0.01
+
+
 class Events(NamedTuple):
     """Per-throw events (scalars)."""
     hit: jax.Array            # bool: paddle touched the ball
@@ -201,7 +207,7 @@ def contact_kinds(cfg: World, ball_prev, ball, paddle):
     pos = ball[:, :3]
     reach = float(np.hypot(*cfg.robot.blade_half_size)) + r + 0.03
     near_paddle = jnp.linalg.norm(pos - paddle, axis=-1) < reach
-    near_net = (jnp.abs(pos[:, 0]) < t.net_thickness / 2 + r + 0.01) & (pos[:, 2] < t.top_z + t.net_height + r + 0.01)
+    near_net = (jnp.abs(pos[:, 0]) < net_zone(cfg)) & (pos[:, 2] < t.top_z + t.net_height + r + 0.01)
     kind = jnp.where(near_paddle, 0, jnp.where(near_net, 1, 2)).astype(jnp.int32)
     return contact, kind
 
