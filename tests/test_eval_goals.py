@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from documented import check_eval_out
 from ttmjx import cli
 from ttmjx.world.config import Table, World
 from ttmjx.world.env import uniform_goals
@@ -140,42 +141,22 @@ def eval_dir(tmp_path_factory):
 
 def test_eval_out_writes_the_summary_it_prints_and_one_row_per_episode(eval_dir):
     out, printed, goals = eval_dir
-    assert sorted(os.listdir(out)) == ["episodes.csv", "summary.json", "tracks.npz"]
-    assert json.load(open(os.path.join(out, "summary.json"))) == printed
+    rows = check_eval_out(out, printed)                  # docs/DATA.md, "Evaluation output"
     assert printed["goals"] == len(goals) == 24
-    rows = list(csv.DictReader(open(os.path.join(out, "episodes.csv"))))
-    assert list(rows[0]) == ["goal_x", "goal_y", "hit", "landing_x", "landing_y", "on_opponent_half",
-                             "distance_m", "success_30cm", "success_20cm"]
     np.testing.assert_array_equal(np.float32([[r["goal_x"], r["goal_y"]] for r in rows]), goals)  # exact text
-    col = lambda k: np.array([int(r[k]) for r in rows])  # noqa: E731
-    for key, name in [("hit_rate", "hit"), ("on_table_rate", "on_opponent_half"),
-                      ("within_30cm", "success_30cm"), ("within_20cm", "success_20cm")]:
-        assert printed[key] == pytest.approx(col(name).mean()), key
     assert 0 < printed["on_table_rate"] < printed["hit_rate"], "the policy should put some hits on the table, not all"
-    for r in rows:
-        landed = r["landing_x"] != ""
-        assert landed <= (r["hit"] == "1") and (r["distance_m"] != "") == landed
-        if r["on_opponent_half"] == "1":      # a first bounce on the opponent's half: on its footprint
-            x, y = float(r["landing_x"]), float(r["landing_y"])
-            assert -0.02 <= x <= TABLE.half_length + 0.02 and abs(y) <= TABLE.half_width + 0.02, (x, y)
-        else:
-            assert r["success_30cm"] == "0"
-        if landed:
-            d = np.hypot(float(r["landing_x"]) - float(r["goal_x"]), float(r["landing_y"]) - float(r["goal_y"]))
-            assert float(r["distance_m"]) == pytest.approx(d, abs=1e-6)
-            assert r["success_30cm"] == str(int(r["on_opponent_half"] == "1" and d <= 0.30))
-    on_table = np.array([float(r["distance_m"]) for r in rows if r["on_opponent_half"] == "1"])
-    assert printed["mean_dist"] == pytest.approx(on_table.mean())
 
 
 def test_tracks_recompute_the_recorded_landings(eval_dir):
-    """From tracks.npz alone: the ball's last sample before the episode ended, carried forward
+    """From tracks.npz alone: the ball's true centre at the last step before the episode ended, carried forward
     ballistically (gravity; drag moves it < 1 mm in one 10 ms step) to table height + radius,
     lands where the episode's landing was recorded, within the travel of two 1 ms physics steps
     (the events resolve a contact to one physics step) plus 2 mm of the ball's sink into the table."""
     out, _, _ = eval_dir
     with np.load(os.path.join(out, "tracks.npz"), allow_pickle=False) as f:
         t = {k: f[k] for k in f.files}
+    # At ideal timing (tiny) the policy saw the truth; under the cell's: tests/test_true_tracks.py.
+    np.testing.assert_array_equal(t["ball_observed"][t["valid"]], t["ball_pos"][t["valid"]])
     rows = list(csv.DictReader(open(os.path.join(out, "episodes.csv"))))
     n, steps = len(rows), World().horizon
     assert t["ball_pos"].shape == (n, steps, 3) and t["valid"].shape == (n, steps) and t["hit_step"].shape == (n,)

@@ -13,6 +13,7 @@ import jax
 import numpy as np
 import pytest
 
+from documented import check_eval_out
 from ttmjx.world import env
 from ttmjx.world.config import CELL_TRAINING, World
 
@@ -61,11 +62,12 @@ def cell_eval(cell_run, tmp_path_factory):
         tracks = {k: f[k] for k in f.files}
     import csv
     rows = list(csv.DictReader(open(os.path.join(out, "episodes.csv"))))
-    return json.loads(printed.getvalue().strip().splitlines()[-1]), tracks, rows
+    return {**json.loads(printed.getvalue().strip().splitlines()[-1]), "_out": out}, tracks, rows
 
 
 def test_every_landing_of_a_cell_timing_evaluation_is_recomputed_from_tracks_within_1cm(cell_eval):
-    _, t, rows = cell_eval
+    printed, t, rows = cell_eval
+    assert check_eval_out(printed["_out"], {k: v for k, v in printed.items() if k != "_out"}) == rows
     n, steps = len(rows), WORLD.horizon
     s = WORLD.substeps
     assert t["ball_pos"].shape == t["ball_observed"].shape == (n, steps, 3)

@@ -1,0 +1,79 @@
+"""Checks that an output means what docs/DATA.md says, shared by the tests of each output:
+`ttmjx eval --out` (summary.json, episodes.csv) and a run's metrics.jsonl."""
+import csv
+import json
+import os
+
+import numpy as np
+import pytest
+
+from ttmjx.world.config import Table
+from ttmjx.world.goals import GOAL_REGIONS
+
+GOAL_METRICS = {"within_30cm", "within_20cm", "hit_rate", "on_table_rate", "mean_dist", "mean_dist_landed", "goals"}
+EPISODE_COLUMNS = ["goal_x", "goal_y", "hit", "landing_x", "landing_y", "on_opponent_half", "distance_m",
+                   "success_30cm", "success_20cm"]
+
+
+def check_eval_out(out: str, printed: dict, table: Table = Table()) -> list[dict]:
+    """summary.json is the printed object with the documented keys, and episodes.csv's rows add up
+    to it (DATA.md, "Evaluation output"); returns the rows."""
+    assert sorted(os.listdir(out)) == ["episodes.csv", "summary.json", "tracks.npz"]
+    assert json.load(open(os.path.join(out, "summary.json"))) == printed
+    assert set(printed) == GOAL_METRICS | {"distribution", "trajectories", "step"} | (
+        {"per_goal"} if "per_goal" in printed else set())
+    rows = list(csv.DictReader(open(os.path.join(out, "episodes.csv"))))
+    assert list(rows[0]) == EPISODE_COLUMNS and printed["goals"] == len(rows)
+    col = lambda k: np.array([int(r[k]) for r in rows])  # noqa: E731
+    for key, name in [("hit_rate", "hit"), ("on_table_rate", "on_opponent_half"),
+                      ("within_30cm", "success_30cm"), ("within_20cm", "success_20cm")]:
+        assert printed[key] == pytest.approx(col(name).mean()), key
+    for r in rows:
+        landed = r["landing_x"] != ""
+        assert landed <= (r["hit"] == "1") and (r["distance_m"] != "") == landed
+        if r["on_opponent_half"] == "1":      # a first bounce on the opponent's half: on its footprint
+            x, y = float(r["landing_x"]), float(r["landing_y"])
+            assert -0.02 <= x <= table.half_length + 0.02 and abs(y) <= table.half_width + 0.02, (x, y)
+        else:
+            assert r["success_30cm"] == r["success_20cm"] == "0"
+        if landed:
+            d = np.hypot(float(r["landing_x"]) - float(r["goal_x"]), float(r["landing_y"]) - float(r["goal_y"]))
+            assert float(r["distance_m"]) == pytest.approx(d, abs=1e-6)
+            assert r["success_30cm"] == str(int(r["on_opponent_half"] == "1" and d <= 0.30))
+            assert r["success_20cm"] == str(int(r["on_opponent_half"] == "1" and d <= 0.20))
+    on_table = np.array([float(r["distance_m"]) for r in rows if r["on_opponent_half"] == "1"])
+    came_down = np.array([float(r["distance_m"]) for r in rows if r["distance_m"] != ""])
+    assert printed["mean_dist"] == pytest.approx(on_table.mean())
+    assert printed["mean_dist_landed"] == pytest.approx(came_down.mean())    # either half, or beside the table
+    return rows
+
+
+def check_metrics_rows(rows: list[dict], cfg) -> None:
+    """Every key of a run's metrics.jsonl rows is one DATA.md names ("Run directories") and means it."""
+    regions = {f"{g}_30cm" for g in GOAL_REGIONS}
+    members = {f"member{i}_30cm" for i in range(cfg.train.members)} if cfg.train.members > 1 else set()
+    base = {"iteration", "phase", "trajectories", "updates", "cache_size", "loss", "seconds"}
+    practice = {f"practice_{k}" for k in {"hit_rate", "on_table_rate", "within_30cm", "within_20cm", "kept"}
+                | regions | members}
+    evaluation = {f"eval_{k}" for k in GOAL_METRICS | regions | members}
+    assert [r["iteration"] for r in rows] == list(range(len(rows)))
+    seen = 0
+    for r in rows:
+        keys = set(r)
+        assert base <= keys and keys <= base | practice | evaluation, keys - base - practice - evaluation
+        assert r["phase"] in ("pretrain", "practice", "lfp")
+        assert (practice <= keys) == (r["phase"] == "practice") and (keys & practice in (set(), practice))
+        assert keys & evaluation in (set(), evaluation)
+        assert r["trajectories"] >= seen and r["cache_size"] <= cfg.train.capacity and r["seconds"] > 0
+        if r["phase"] == "practice":
+            assert r["trajectories"] - seen <= cfg.episodes_per_ssp
+            assert 0 <= r["practice_kept"] <= r["trajectories"] - seen
+            for k in practice - {"practice_kept"}:
+                assert r[k] is None or 0 <= r[k] <= 1, k
+            assert r["practice_within_20cm"] <= r["practice_within_30cm"] <= r["practice_on_table_rate"] <= r["practice_hit_rate"]
+        if "eval_goals" in r:
+            assert r["eval_goals"] == cfg.eval_goals
+            assert r["eval_within_20cm"] <= r["eval_within_30cm"] <= r["eval_on_table_rate"] <= r["eval_hit_rate"]
+        seen = r["trajectories"]
+    assert rows[-1]["trajectories"] == cfg.total_trajectories
+    assert any("eval_goals" in r for r in rows) and any(r["phase"] == "practice" for r in rows)
