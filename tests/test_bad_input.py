@@ -17,7 +17,7 @@ RUN = os.path.join(DATA, "tiny_run_v0")          # a real (two-member) run direc
 
 def cases():
     """(id, argv) of bad invocations; {tmp} is a scratch directory, {file} a file in it,
-    {empty} an empty directory in it."""
+    {empty} an empty directory in it, {qtopt} a QT-Opt baseline run's directory (its state only)."""
     c = [("no-command", []), ("unknown-command", ["fly"]), ("robot-alone", ["robot"]),
          ("robot-unknown", ["robot", "fly"]), ("unknown-flag", ["throw", "--bogus", "1"]),
          ("flag-without-value", ["throw", "--n"]), ("flag-given-value", ["throw", "--spin", "yes"])]
@@ -82,11 +82,16 @@ def cases():
         ("ablate noise --scale tiny --plan", "--cells", ["d10", "99"]),
         ("ablate demos --scale tiny", "--out", ["{file}"]),
         ("ablate demos --scale tiny --out {empty}", "--report", ["--report"]),     # nothing finished yet
-        ("baseline", "", ["nope", "ppo,qtopt", ""]), ("baseline ppo --scale tiny", "--seeds", ["0", "abc"]),
+        ("baseline", "", ["nope", "ppo,dqn", ""]), ("baseline ppo --scale tiny", "--seeds", ["0", "abc"]),
         ("baseline ppo", "--scale", ["huge"]), ("baseline ppo --scale tiny", "--trajectories", ["0", "-5"]),
         ("baseline es --scale tiny", "--trajectories", ["1"]), ("baseline ppo --scale full", "--trajectories", ["100"]),
         ("baseline ppo --scale tiny", "--reward.goal", ["nan", "-1"]), ("baseline ppo --scale tiny", "--reward.hit", ["-0.5"]),
         ("baseline ppo --scale tiny", "--reward.goal-scale", ["0", "nan"]), ("baseline ppo --scale tiny", "--out", ["{file}"]),
+        ("baseline qtopt --scale full", "--trajectories", ["120001", "299"]),
+        ("baseline qtopt", "--qtopt.cem-iterations", ["0", "abc"]), ("baseline qtopt", "--qtopt.cem-elites", ["1", "65"]),
+        ("baseline qtopt", "--qtopt.cem-population", ["0"]), ("baseline qtopt", "--qtopt.discounting", ["1", "nan"]),
+        ("baseline qtopt", "--qtopt.epsilon", ["1.5"]), ("baseline qtopt", "--qtopt.target-tau", ["0"]),
+        ("eval", "", ["{qtopt}"]), ("export --out {tmp}/e", "", ["{qtopt}"]),
         ("robot bench", "--hidden", ["0"]), ("robot bench", "--layers", ["0"]), ("robot bench", "--members", ["0"]),
         ("robot bench", "--steps", ["0"]), ("robot bench", "--threads", ["0"]), ("robot bench", "--kind", ["gru"]),
         ("robot bench", "--engine", ["torch"]), ("robot bench", "--obs-size", ["14"]), ("robot bench", "--frame-stack", ["0"]),
@@ -107,6 +112,7 @@ def test_the_table_is_large():
 @pytest.fixture()
 def scratch(tmp_path, monkeypatch):
     (tmp_path / "empty").mkdir()
+    (tmp_path / "qtopt_run" / "qtopt_state").mkdir(parents=True)
     (tmp_path / "a_file").write_text("not a dataset\n")
     (tmp_path / "goals.csv").write_text("x,y\n0.7,nan\n")
     (tmp_path / "good.csv").write_text("x,y\n0.7,0.0\n")
@@ -126,9 +132,10 @@ def listing(root) -> set:
 
 @pytest.mark.parametrize("name,argv", CASES, ids=[n for n, _ in CASES])
 def test_bad_input_is_one_line_and_changes_nothing(name, argv, scratch):
-    subst = {"{tmp}": str(scratch), "{file}": str(scratch / "a_file"), "{empty}": str(scratch / "empty")}
+    subst = {"{tmp}": str(scratch), "{file}": str(scratch / "a_file"), "{empty}": str(scratch / "empty"),
+             "{qtopt}": str(scratch / "qtopt_run")}
     argv = [a.replace("{tmp}", subst["{tmp}"]).replace("{file}", subst["{file}"]).replace("{empty}", subst["{empty}"])
-            for a in argv]
+            .replace("{qtopt}", subst["{qtopt}"]) for a in argv]
     before = listing(scratch)
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), pytest.raises(SystemExit) as ex:
