@@ -22,7 +22,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from table1_figures import band, runs_of, series  # noqa: E402
 
 LABELS = {"ppo": "PPO (brax, no demonstrations)", "es": "ES (brax, no demonstrations)",
-          "sac": "SAC (brax, no demonstrations)"}
+          "sac": "SAC (brax, no demonstrations)", "qtopt": "QT-Opt (ours, JAX, no demonstrations)"}
 
 
 def rl_curves(root: str, method: str, key: str) -> list[tuple[np.ndarray, np.ndarray]]:
