@@ -147,7 +147,7 @@ def flags(cls, prefix="--"):
 
 def test_every_subcommand_help_lists_every_field(capsys, monkeypatch):
     assert [*COMMANDS] == ["throw", "bench", "render", "sim", "demos", "plot-landings", "train", "eval",
-                           "report", "ablate", "baseline", "export", "robot run", "robot sweep", "robot serve", "robot bench"]
+                           "report", "ablate", "baseline", "export", "robot run", "robot sweep", "robot parity", "robot serve", "robot bench"]
     assert len(list(flags(COMMANDS["train"].args))) > 100     # RunConfig's nested fields
     for name, cmd in COMMANDS.items():
         text = help_of(capsys, monkeypatch, *name.split())

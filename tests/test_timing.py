@@ -4,18 +4,15 @@ delayed commands are what the simulated station and the robot runner produce.
 * read: the world's per-sensor read equals the runner's interpolation (deploy.robot.interp) of the
   samples a station would have delivered, for random rates, latencies and read times;
 * commands: the world's per-physics-step targets equal the station's delayed ramps;
-* end to end: a trained policy evaluated in the world under the nominal profile (jitter off)
-  and served by the runner on the station under the same profile, with the station's launches
-  lined up with the world's drawn start offsets, sees the same frames and sends the same
-  commands, step for step;
+* end to end (tests/test_runner_parity.py): a trained policy played by the world and by the
+  runner on the station under the cell's training timing, the world's draws set on the station,
+  sees the same frames and sends the same commands, step for step;
 * a robot run is reproducible by seed.
 """
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
-import sys
 
 import jax
 import jax.numpy as jnp
@@ -102,52 +99,6 @@ def test_world_commands_are_the_stations_delayed_ramps():
         world = np.asarray(timing.substep_targets(cfg, jnp.asarray(cmds), jnp.int32(n), delay))
         station = np.stack([st._ctrl_at(st.t_origin + n * dt + (i + 1) * cfg.physics_dt) for i in range(s)])
         np.testing.assert_allclose(world, station, atol=1e-5, err_msg=f"tick {n}")
-
-
-@pytest.fixture(scope="module")
-def served(tmp_path_factory):
-    """Evaluation under NOMINAL and the runner on a NOMINAL station, launches lined up."""
-    sys.path.insert(0, os.path.join(ROOT, "scripts"))
-    import runner_vs_eval
-
-    from deploy.robot.exported import export_world, load_export
-    from deploy.robot.runner import Runner
-    from deploy.sim.export import export
-    from deploy.sim.station import SimClock, SimStation, complete_episode
-    from ttmjx.world.backends import Backend
-    n, seed = 3, 7
-    cfg, params, goals, throws, tr = runner_vs_eval.evaluation(RUN, 0, n, seed, timing=NOMINAL)
-    k_run = jax.random.split(jax.random.PRNGKey(seed))[1]
-    draws = Backend(cfg.world, "c").timing_draws(jax.random.split(k_run)[1], n)   # rollout_goals' k_roll
-    out = export(params, cfg.policy, cfg.world, str(tmp_path_factory.mktemp("timing") / "policy"), source="tiny@0")
-    policy, contract = load_export(out)
-    clock = SimClock()
-    station = SimStation(export_world(policy.contract_doc), contract, clock=clock, timing=NOMINAL)
-    runner = Runner(station.robot, station.tracker, clock, policy, contract)
-    station.prefetch()
-    episodes = []
-    for i, throw in enumerate(runner_vs_eval.station_throws(throws)):
-        assert runner.move_home(np.asarray(tr.obs[i, 0, :8], np.float64) if int(draws.n_exec[i]) > 0 else None)
-        lead, phase = int(draws.lead[i]), int(draws.joint_phase[i])
-        base = math.ceil((clock.now() + 1.0 - station.t_origin) / station.dt)   # 1 s: the arm settles
-        step = base + (-base - lead) % station.ball_every            # first sample `lead` steps after launch
-        station.joint_offset = (step + lead + phase) % station.joint_every
-        station.throw_in((step - 0.5) * station.dt + station.t_origin - clock.now(), throw)
-        ep = runner.run_episode(goals[i])
-        episodes.append(complete_episode(ep, station.finish_throw(), contract))
-    return tr, episodes, draws, runner
-
-
-def test_the_world_under_nominal_timing_sees_and_sends_what_the_runner_does(served):
-    import runner_vs_eval
-    tr, episodes, draws, runner = served
-    assert all(ep.meta["end"] == "done" for ep in episodes)
-    assert runner.skipped == runner.overruns == 0
-    for i, ep in enumerate(episodes):
-        steps = int(min(40, tr.valid[i].sum()))
-        assert steps >= 20
-        div = runner_vs_eval.first_divergence(tr.obs[i], tr.actions[i], ep.traj.obs[0], ep.extras["commands"], steps)
-        assert div is None, f"episode {i} (lead {int(draws.lead[i])}, n_exec {int(draws.n_exec[i])}): {div}"
 
 
 def test_a_robot_run_is_reproducible_by_seed(tmp_path):

@@ -130,6 +130,10 @@ def test_robot_run_refuses_bad_timing_with_one_line_and_exit_2(exports, tmp_path
     assert "no timing record" in err
     err = _one_line_exit_2(capsys, ["robot", "sweep", "--policy", old, "--out", str(tmp_path / "sw")])
     assert "no timing record" in err
+    err = _one_line_exit_2(capsys, ["robot", "parity", "--policy", old, "--n", "1"])
+    assert "no timing record" in err and old in err
+    err = _one_line_exit_2(capsys, ["robot", "parity", "--policy", exports["cell"], "--timing", "bogus"])
+    assert "--timing 'bogus'" in err and "trained, centre" in err
     assert not os.path.exists(tmp_path / "sw" / "sweep.json")
 
 

@@ -172,7 +172,8 @@ def runner_play(loaded: Loaded, tm: Timing, played: WorldPlay, poses=None, seed:
     """(episodes, runner, station): the export played by the runner on a simulated station under
     `timing`, each episode lined up with the world's: its throw, goal and start pose poses [N, 8]
     (default: the world's), its timing draw, the tracker's first sample `lead` physics steps after
-    the launch and the joint samples on the world's phase; started on the runner's ball trigger."""
+    the launch and the joint samples on the world's phase; started on the runner's ball trigger
+    (without a tracker rate, at the launch, as the world's ideal episodes start)."""
     clock = SimClock()
     station = DrawnStation(loaded.cfg, loaded.contract, clock=clock, seed=seed, timing=tm)
     runner = Runner(station.robot, station.tracker, clock, loaded.policy, loaded.contract)
@@ -190,9 +191,11 @@ def runner_play(loaded: Loaded, tm: Timing, played: WorldPlay, poses=None, seed:
         step = base + (-base - lead) % station.ball_every        # the first tracker sample `lead` steps later
         station.joint_offset = (step + lead + phase) % station.joint_every
         station.episode = (step + lead, phase, jnp.asarray(d.key[i]))
-        station.throw_in((step - 0.5) * station.dt + station.t_origin - clock.now(), throw)
+        t_launch = station.throw_in((step - 0.5) * station.dt + station.t_origin - clock.now(), throw)
         drawn_timing(station, d, i)
-        ep = runner.run_episode(played.goals[i])
+        # Without a tracker rate the world's tick 0 is the launch and it acts at once: the runner
+        # is told the launch (the station announces it); with one, the runner's own ball trigger.
+        ep = runner.run_episode(played.goals[i], t_launch if tm.tracker_hz is None else None)
         if ep is None:
             raise ParityError(f"episode {i}: the runner never saw the ball (timing {tm})")
         episodes.append(complete_episode(ep, station.finish_throw(), loaded.contract))
