@@ -61,7 +61,7 @@ def private_compilation_cache(directory) -> dict:
 # test_physics.py moved from 4th to the end: its MJX runs compile without XLA:CPU's fusion
 # emitters since 98224ff (ttmjx/tools/calibration.py), ~30 s with a cold cache instead of ~190 s.
 FIRST = ("test_baselines_loops.py", "test_trainer.py", "test_bad_input.py", "test_baselines.py",
-         "test_paper_bootstrap.py", "test_seeds.py", "test_cli.py", "test_striker.py",
+         "test_qtopt.py", "test_paper_bootstrap.py", "test_seeds.py", "test_cli.py", "test_striker.py",
          "test_training_core.py", "test_timing.py", "test_ablate.py", "test_models.py",
          "test_sharding.py", "test_bootstrap.py", "test_drivers.py", "test_world.py",
          "test_export.py", "test_es.py", "test_cell_cli.py", "test_deploy_runner.py", "test_physics.py")
