@@ -136,7 +136,7 @@ class QTOptConfig:
     split into the 7 equal epochs of the 8 curve points every RL row has. Each actor step adds
     12,000 transitions and takes 8 gradient steps (SACConfig.grad_updates_per_step) of 1,500:
     every transition is replayed once on average. The scale is the session's compute, not
-    QT-Opt's (its distributed learners ran far more gradient steps per collected grasp).
+    QT-Opt's.
 
     Validated here: each count an integer >= 1, 2 <= cem_elites <= cem_population, a replay
     buffer that holds the prefill and one actor step, rates in their ranges; ValueError naming
