@@ -17,7 +17,7 @@ ball trigger as on the cell; each sensor sample's jitter and drop is the world's
 (DrawnStation).
 
 Per control step the two are compared on what the policy sees (the frame: sensed joints, sensed
-ball, goal) and on the command actually sent (the world's clipped target against the runner's
+ball, in 16-value frames its sensed velocity, goal) and on the command actually sent (the world's clipped target against the runner's
 after its safety filter): the first step where each parts beyond its tolerance and by how much,
 then hit, landing and the strict goal metrics of both on the same goals and throws.
 """
@@ -35,18 +35,22 @@ import numpy as np
 from deploy.robot.exported import _unflatten, read_weights
 from deploy.robot.runner import Runner
 from deploy.sim.station import Loaded, SimClock, SimStation, complete_episode, goal_summary
-from ttmjx.world import files, thrower, timing
+from ttmjx.world import files, observation, thrower, timing
 from ttmjx.world.config import TIMING_PROFILES, Timing
 from ttmjx.world.env import Policy, uniform_goals
 from ttmjx.world.goals import goal_metrics
-from ttmjx.world.record import OBS_BALL, OBS_JOINTS
+from ttmjx.world.record import OBS_JOINTS
 
 # Tolerances of "the same": float32 rounding through two implementations of one network (frames
 # and commands, rad or m), and a landing within 1 mm.
 FRAME_TOL = COMMAND_TOL = 1e-4
+# The sensed velocity is a slope over one tracker interval (8 ms at 125 Hz): FRAME_TOL over it.
+VELOCITY_TOL = FRAME_TOL * 125.0
 LANDING_TOL = 1e-3
 # What is compared per step: (name, array on each side, columns).
-QUANTITIES = ("joints_seen", "ball_seen", "goal", "command")
+TOLERANCES = {"joints_seen": FRAME_TOL, "ball_seen": FRAME_TOL, "ball_vel_seen": VELOCITY_TOL,
+              "goal": FRAME_TOL, "command": COMMAND_TOL}
+QUANTITIES = tuple(TOLERANCES)
 ARMED_S = 1.0          # s between arming and the launch: the arm settles at its start pose
 
 
@@ -206,17 +210,22 @@ def runner_play(loaded: Loaded, tm: Timing, played: WorldPlay, poses=None, seed:
 # --------------------------------------------------------------------------------------------
 # The comparison
 # --------------------------------------------------------------------------------------------
-def step_differences(tr, ep, i: int) -> dict[str, np.ndarray]:
+def step_differences(tr, ep, i: int, velocity: bool = False) -> dict[str, np.ndarray]:
     """{quantity: [T] largest absolute difference per control step} of world episode i and the
-    runner's episode over the steps both logged (NaN where either did not)."""
+    runner's episode over the steps both logged (NaN where either did not). velocity: the policy
+    reads 16-value frames, whose sensed ball velocity both records keep apart (`ball_vel`; for
+    13-value frames the world's ball_vel is the true velocity, which no policy saw)."""
     t = min(tr.obs.shape[1], len(ep.traj.obs[0]))
     valid = np.asarray(tr.valid[i, :t]) & np.asarray(ep.traj.valid[0, :t])
     a, b = np.asarray(tr.obs[i, :t], np.float64), np.asarray(ep.traj.obs[0, :t], np.float64)
-    cols = {"joints_seen": OBS_JOINTS, "ball_seen": OBS_BALL, "goal": slice(a.shape[-1] - 2, a.shape[-1])}
+    cols = {"joints_seen": observation.JOINTS, "ball_seen": observation.BALL_POS, "goal": observation.GOAL}
     out = {k: np.abs(a[:, c] - b[:, c]).max(-1) for k, c in cols.items()}
+    out["ball_vel_seen"] = (np.abs(np.asarray(tr.ball_vel[i, :t], np.float64)
+                                   - np.asarray(ep.traj.ball_vel[0, :t], np.float64)).max(-1)
+                            if velocity else np.zeros(t))
     out["command"] = np.abs(np.asarray(tr.actions[i, :t], np.float64)
                             - np.asarray(ep.extras["commands"][:t], np.float64)).max(-1)
-    return {k: np.where(valid, v, np.nan) for k, v in out.items()}
+    return {k: np.where(valid, out[k], np.nan) for k in QUANTITIES}
 
 
 def first_part(diff: np.ndarray, tol: float) -> int | None:
@@ -225,12 +234,11 @@ def first_part(diff: np.ndarray, tol: float) -> int | None:
     return int(over[0]) if over.size else None
 
 
-def episode_row(tr, ep, i: int) -> dict:
+def episode_row(tr, ep, i: int, velocity: bool = False) -> dict:
     """Episode i: per quantity the first step it parts and its largest difference; hit and
-    landing on both sides."""
-    diffs = step_differences(tr, ep, i)
-    tol = {"command": COMMAND_TOL}
-    parts = {k: first_part(v, tol.get(k, FRAME_TOL)) for k, v in diffs.items()}
+    landing on both sides (velocity: as step_differences)."""
+    diffs = step_differences(tr, ep, i, velocity)
+    parts = {k: first_part(v, TOLERANCES[k]) for k, v in diffs.items()}
     land_a, land_b = np.asarray(tr.landing[i], np.float64), np.asarray(ep.traj.landing[0], np.float64)
     both = np.all(np.isfinite(land_a)) and np.all(np.isfinite(land_b))
     firsts = [s for s in parts.values() if s is not None]
@@ -244,9 +252,9 @@ def episode_row(tr, ep, i: int) -> dict:
     }
 
 
-def differences_by_step(tr, episodes) -> dict[str, np.ndarray]:
+def differences_by_step(tr, episodes, velocity: bool = False) -> dict[str, np.ndarray]:
     """{quantity: [N, T] per-step difference} over all episodes (NaN past either's end)."""
-    rows = [step_differences(tr, ep, i) for i, ep in enumerate(episodes)]
+    rows = [step_differences(tr, ep, i, velocity) for i, ep in enumerate(episodes)]
     t = max(len(r["command"]) for r in rows)
     pad = lambda v: np.concatenate([v, np.full(t - len(v), np.nan)])  # noqa: E731
     return {k: np.stack([pad(r[k]) for r in rows]) for k in QUANTITIES}
@@ -305,7 +313,7 @@ def plot(diffs: dict[str, np.ndarray], dt: float, path: str) -> None:
             finite = np.isfinite(v).any(0)
             ax.semilogy(t[finite], np.nanmax(v[:, finite], 0) + 1e-9, label="largest")
             ax.semilogy(t[finite], np.nanmedian(v[:, finite], 0) + 1e-9, label="median")
-        ax.axhline(COMMAND_TOL if q == "command" else FRAME_TOL, color="k", ls=":", lw=1, label="tolerance")
+        ax.axhline(TOLERANCES[q], color="k", ls=":", lw=1, label="tolerance")
         ax.set_title(q.replace("_", " "))
         ax.set_xlabel("time since tick 0 (s)")
     axes[0].set_ylabel("|world - runner|")
@@ -346,7 +354,8 @@ def run_parity(policy_dir: str, n: int = 16, seed: int = 1234, backend: str = "c
     tm = parity_timing(loaded, timing)
     played = world_play(loaded, tm, backend, n, seed)
     episodes, runner, station = runner_play(loaded, tm, played, seed=seed)
-    rows = [episode_row(played.tr, ep, i) for i, ep in enumerate(episodes)]
+    velocity = loaded.contract.obs_size > observation.BALL_VEL.start + 2       # 16-value frames
+    rows = [episode_row(played.tr, ep, i, velocity) for i, ep in enumerate(episodes)]
     out = {**summary(played, episodes, rows), "rows": rows, "policy": policy_dir, "backend": backend,
            "timing": timing, "seed": seed, "goals": n,
            "runner_faults": {"skipped": runner.skipped, "overruns": runner.overruns,
@@ -355,6 +364,6 @@ def run_parity(policy_dir: str, n: int = 16, seed: int = 1234, backend: str = "c
     if out_dir:
         os.makedirs(out_dir, exist_ok=True)
         files.write_json(os.path.join(out_dir, "parity.json"), out)
-        plot(differences_by_step(played.tr, episodes), loaded.cfg.control_dt, os.path.join(out_dir, "parity.png"))
+        plot(differences_by_step(played.tr, episodes, velocity), loaded.cfg.control_dt, os.path.join(out_dir, "parity.png"))
     return out
 

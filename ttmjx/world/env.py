@@ -148,6 +148,11 @@ def reset(cfg: World, lay: Layout, key, launch_pos, launch_vel, launch_spin, aim
     if cfg.timing.ideal:
         return state
     f0 = sensed_frame(cfg, state)
+    if cfg.ball_velocity_obs and cfg.timing.tracker_hz is not None:
+        # The runner reads tick 0 after its trigger, through the trigger's sample taken after the
+        # tick: the line's slope, not the single sample's zero (the frame pads the whole stack).
+        slope = timing.first_slope(cfg, pos, vel, launch_spin, draw.key)
+        f0 = f0.at[observation.BALL_VEL].set(slope / cfg.physics_dt)
     return state._replace(frames=jnp.broadcast_to(f0, (cfg.frame_stack, f0.shape[0])))
 
 

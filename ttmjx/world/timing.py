@@ -93,17 +93,34 @@ def draw(cfg: World, key) -> Draw:
                 n_exec=jnp.ceil(trigger / cfg.substeps - 1e-6).astype(jnp.int32), key=k_sample)
 
 
-def trigger_step(cfg: World, every: int, latency, key):
-    """When the runner notices the ball (physics steps from tick 0): the delivery of the first
-    kept ball sample after the first, sample m at step m * every delivered latency + its jitter
-    later (jitter and drops drawn as `read` draws them, so the ticks before the trigger are read
-    from exactly the samples the runner holds when it fires)."""
+def trigger_sample(cfg: World, key):
+    """(m, its jitter in physics steps): the ball sample whose delivery fires the runner's trigger,
+    the first kept one after the first (jitter and drops drawn as `read` draws them)."""
     tm = cfg.timing
     m = jnp.arange(1, CANDIDATES + 1, dtype=jnp.int32)
     jitter = _uniform(key, BALL, m, 0) * (tm.jitter_s / cfg.physics_dt) if tm.jitter_s else jnp.zeros(m.shape)
     kept = _uniform(key, BALL, m, 1) >= tm.drop_prob if tm.drop_prob else jnp.ones(m.shape, bool)
     i = jnp.argmax(kept)          # every candidate dropped: the first (a track that rare is not modelled)
-    return (m[i] * every + latency + jitter[i]).astype(jnp.float32)
+    return m[i], jitter[i]
+
+
+def trigger_step(cfg: World, every: int, latency, key):
+    """When the runner notices the ball (physics steps from tick 0): the delivery of the trigger's
+    sample (trigger_sample), taken at m * every and delivered latency + its jitter later, so the
+    ticks before the trigger are read from exactly the samples the runner holds when it fires."""
+    m, jitter = trigger_sample(cfg, key)
+    return (m * every + latency + jitter).astype(jnp.float32)
+
+
+def first_slope(cfg: World, pos, vel, spin, key):
+    """[3] per physics step: the ball's line at tick 0 as the runner draws it, through the first
+    sample (pos, at tick 0) and the trigger's sample `m * E_ball` steps later, which the runner
+    holds when it reads tick 0 after the trigger (the world, at tick 0, has not simulated that
+    sample yet, so it flies the ball there: free flight, far from the robot)."""
+    every = steps_per_sample(cfg, "tracker_hz")
+    m, _ = trigger_sample(cfg, key)
+    later, _ = fly(cfg, pos, vel, spin, m * every)
+    return (later - pos) / (m * every).astype(jnp.float32)
 
 
 def fly(cfg: World, pos, vel, spin, steps):
