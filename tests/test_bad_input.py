@@ -195,6 +195,9 @@ NAMED = [   # (argv, exit code, substrings the one line must hold)
     (TRAIN + " --data {tmp}/logs50", 2, ["--data", "50 Hz", "100 Hz", "ep0"]),
     (TRAIN + " --data {tmp}/logs16", 2, ["--data", "16-value", "13"]),
     (TRAIN + " --data {tmp}/logs_order", 2, ["--data", "joint order"]),
+    # meaningless work: a budget that ends before any environment has played one whole episode
+    ("baseline ppo --scale tiny --trajectories 1 --out {tmp}/b", 2,
+     ["ttmjx baseline: error:", "trajectory budget 1", "2 environments", "whole 160-step episode", "smallest budget is 2"]),
 ]
 
 

@@ -161,6 +161,11 @@ def test_brax_runs_exactly_the_budget_or_refuses_it():
             try:
                 cfg = baselines.method_config(method, "full", 0, "r", trajectories=budget)
             except ValueError as e:
+                if "smallest budget is" in str(e):      # QT-Opt's 12,000 environments: 4,097 is no episode each
+                    smallest = int(str(e).split("smallest budget is ")[-1].replace(",", ""))
+                    assert budget < smallest and "whole 160-step episode" in str(e), (method, budget, str(e))
+                    baselines.method_config(method, "full", 0, "r", trajectories=smallest)   # accepted
+                    continue
                 nums = [int(x.replace(",", "")) for x in re.findall(r"\d[\d,]*\d|\d", str(e).split("nearest budgets are")[-1])]
                 assert len(nums) == 2 and "nearest budgets" in str(e) and f"{budget:,}" in str(e), str(e)
                 below, above = nums

@@ -181,15 +181,26 @@ def _epochs(units: int, target: int) -> int:
     return min(divisors, key=lambda d: (abs(math.log(d / target)), -d))
 
 
+def _environments(cfg: BaselineConfig) -> int:
+    """Environments brax steps side by side (ES: none; its episodes are whole by construction): a
+    budget below this many trajectories ends before any of them has played one whole episode."""
+    return {"ppo": cfg.ppo.num_envs, "sac": cfg.sac.num_envs, "qtopt": cfg.qtopt.num_envs}.get(cfg.method, 1)
+
+
 def exact_budgets(cfg: BaselineConfig, trajectories: int) -> tuple[int | None, int]:
     """(largest, smallest): the budgets brax runs exactly that are <= and >= `trajectories`
     (None: none below). A budget is exact when prefill + k * unit environment steps, k a whole
-    number of the method's batches (>= 1), are that many whole trajectories."""
+    number of the method's batches (>= 1), are that many whole trajectories, and at least one
+    whole episode of each of its environments (fewer trains on no episode's end: `ttmjx baseline
+    ppo --scale tiny --trajectories 1` ran each of its 2 environments for half an episode)."""
     h = cfg.run.world.horizon
     prefill, unit = _units(cfg)
     first, period = _valid_units(cfg)
     step = period * unit // h                     # trajectories between two exact budgets
     lowest = (prefill + first * unit) // h
+    envs = _environments(cfg)                     # and each environment plays a whole episode
+    if lowest < envs:
+        lowest += -(-(envs - lowest) // step) * step
     if trajectories < lowest:
         return None, lowest
     below = lowest + (trajectories - lowest) // step * step
@@ -208,6 +219,11 @@ def schedule(cfg: BaselineConfig, trajectories: int | None = None) -> Schedule:
             "sac": f"a replay prefill of {prefill:,} steps, then actor steps of {unit:,} environment steps",
             "es": f"updates of {unit // h:,} episodes",
             "qtopt": f"a replay prefill of {prefill:,} steps, then actor steps of {unit:,} environment steps"}[cfg.method]
+    if below is None and n * h >= prefill + _valid_units(cfg)[0] * unit:
+        envs = _environments(cfg)
+        raise ValueError(f"trajectory budget {n:,} ends before any of {cfg.method}'s {envs:,} environments has "
+                         f"played one whole {h}-step episode ({n * h // envs:,} steps each); the smallest "
+                         f"budget is {above:,}")
     if below is None:
         raise ValueError(f"trajectory budget {n:,} is below one batch of {cfg.method} ({what}); "
                          f"the smallest budget is {above:,}")
