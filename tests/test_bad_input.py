@@ -195,6 +195,19 @@ NAMED = [   # (argv, exit code, substrings the one line must hold)
     (TRAIN + " --data {tmp}/logs50", 2, ["--data", "50 Hz", "100 Hz", "ep0"]),
     (TRAIN + " --data {tmp}/logs16", 2, ["--data", "16-value", "13"]),
     (TRAIN + " --data {tmp}/logs_order", 2, ["--data", "joint order"]),
+    # an --out or --run-dir onto or under a file: the flag and the path ("File exists", "Not a directory" before)
+    ("train --preset tiny --max-iterations 1 --run-dir {tmp}/a_file/r", 2,
+     ["ttmjx train: error:", "--run-dir", "a_file/r", "not a writable directory"]),
+    ("train --preset tiny --max-iterations 1 --run-dir {tmp}/a_file", 2, ["--run-dir", "a_file", "is a file"]),
+    ("eval " + RUN + " --goals {tmp}/good.csv --out {tmp}/a_file", 2, ["--out", "a_file", "is a file"]),
+    ("demos --n 1 --out {tmp}/a_file/sub", 2, ["--out", "a_file/sub", "not a writable directory"]),
+    ("export " + RUN + " --out {tmp}/a_file/sub", 2, ["--out", "a_file/sub", "not a writable directory"]),
+    ("robot run --station fake --goals five --out {tmp}/a_file/sub", 2,
+     ["ttmjx robot run: error:", "--out", "a_file/sub", "not a writable directory"]),
+    ("robot run --station fake --goals five --out {tmp}/a_file", 2, ["--out", "a_file", "is a file"]),
+    ("ablate demos --scale tiny --out {tmp}/a_file/sub", 2, ["ttmjx ablate: error:", "--out", "a_file/sub"]),
+    ("baseline ppo --scale tiny --out {tmp}/a_file", 2, ["ttmjx baseline: error:", "--out", "a_file", "is a file"]),
+    ("report {empty} --out {tmp}/a_file/sub", 2, ["ttmjx report: error:", "--out", "a_file/sub"]),
     # meaningless work: a budget that ends before any environment has played one whole episode
     ("baseline ppo --scale tiny --trajectories 1 --out {tmp}/b", 2,
      ["ttmjx baseline: error:", "trajectory budget 1", "2 environments", "whole 160-step episode", "smallest budget is 2"]),
@@ -248,7 +261,7 @@ def test_the_message_names_the_culprit(argv, code, words, named_scratch):
 
 
 # One of each kind above, as a user meets it: a fresh process, its exit code and its last line.
-AS_SUBPROCESS = [0, 6, 7, 10, 12, 15, 18, 21, 25, 26, 31, 33]
+AS_SUBPROCESS = [0, 6, 7, 10, 12, 15, 18, 21, 25, 26, 31, 33, 35]
 
 
 @pytest.mark.parametrize("index", AS_SUBPROCESS, ids=[NAMED[i][0].replace(TRAIN, "train") for i in AS_SUBPROCESS])

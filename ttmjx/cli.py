@@ -21,7 +21,8 @@ import tyro
 
 from deploy.robot import cli as robot_side
 from ttmjx import commandline
-from ttmjx.commandline import Command, Flag, Report, check_new_path, fail, parse_args, report, table
+from ttmjx.commandline import (Command, Flag, Report, check_new_path, check_resumable_dir, fail, parse_args, report,
+                               table)
 from eval.ablate import ABLATION_NAMES, SCALE_NAMES
 from training.baselines.config import ESConfig, PPOConfig, QTOptConfig, RewardConfig, SACConfig
 from training.runconfig import PRESET_NAMES, RunConfig, preset
@@ -199,6 +200,7 @@ class TrainArgs(Report):
 
     def __post_init__(self):
         super().__post_init__()
+        check_resumable_dir("run_dir", self.config.run_dir)
         self.config.check_meaningful()
 
 
@@ -211,6 +213,10 @@ class ReportArgs(Report):
     """Run directory (ttmjx train --run-dir; one seed of a batch: RUN/seed<s>)."""
     out: str | None = None
     """Directory for report.json and report.png; None: RUN/report."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        check_resumable_dir("out", self.out)     # a file there, or under one
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -269,6 +275,10 @@ class AblateArgs(Report):
     plan: Flag = False
     """List the cells (index, name, finished / partial / to do) and exit."""
 
+    def __post_init__(self):
+        super().__post_init__()
+        check_resumable_dir("out", self.out)     # a file there, or under one
+
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class BaselineArgs(Report):
@@ -303,6 +313,10 @@ class BaselineArgs(Report):
     """QT-Opt's settings at --scale full (its CEM, target networks, replay; training/baselines/config.py)."""
     report: Flag = False
     """Only (re)build the table, curves, landing maps and summary from the finished cells."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        check_resumable_dir("out", self.out)     # a file there, or under one
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)

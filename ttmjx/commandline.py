@@ -70,11 +70,30 @@ def check_new_path(name: str, path: str | None, want_dir: bool) -> None:
         raise ValueError(f"{flag} {path!r} already holds files; expected a new or empty directory")
     if not want_dir and os.path.isdir(path):
         raise ValueError(f"{flag} {path!r} is a directory; expected a file path")
+    check_writable_parent(flag, path)
+
+
+def check_writable_parent(flag: str, path: str) -> None:
+    """ValueError naming the flag, the path and the nearest existing ancestor where that is no
+    writable directory (a file: "Not a directory" / "File exists" from deep inside otherwise)."""
     parent = os.path.dirname(os.path.abspath(path))
     while not os.path.exists(parent):
         parent = os.path.dirname(parent)
     if not os.path.isdir(parent) or not os.access(parent, os.W_OK):
         raise ValueError(f"{flag} {path!r}: cannot write under {parent!r} (not a writable directory)")
+
+
+def check_resumable_dir(name: str, path: str | None) -> None:
+    """A directory a command creates or resumes (train --run-dir, ablate/baseline/robot run --out):
+    ValueError naming the flag and the path where it is a file or lies under one."""
+    if path is None:
+        return
+    flag = "--" + name.replace("_", "-")
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise ValueError(f"{flag} {path!r} is a file; expected a directory (a new one, or one this command "
+                         f"wrote before)")
+    if not os.path.isdir(path):
+        check_writable_parent(flag, path)
 
 
 def report(args: Report, obj: dict, text: str) -> None:

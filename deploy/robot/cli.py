@@ -83,6 +83,7 @@ class RobotRunArgs(Report):
 
     def __post_init__(self):
         super().__post_init__()
+        commandline.check_resumable_dir("out", self.out)     # a file there, or under one
         if self.policy is None and self.station != "fake":
             raise ValueError(f"--station {self.station} needs --policy DIR (an export; only --station fake "
                              f"runs without one)")
