@@ -533,6 +533,36 @@ def test_outputs_that_hold_something_else_are_refused_naming_it(recorded_tiny_ru
     assert listing(run_dir) == before
 
 
+def edited_export(src, dst, section: str, **fields) -> str:
+    """A copy of the export `src` at `dst` with contract.json's `section` fields replaced and the
+    manifest's hashes made to match (a hand-edited contract, not a damaged file)."""
+    from deploy.robot.exported import sha256_bytes
+    shutil.copytree(src, dst)
+    doc = json.loads((dst / "contract.json").read_text())
+    doc[section].update(fields)
+    (dst / "contract.json").write_text(json.dumps(doc))
+    man = json.loads((dst / "manifest.json").read_text())
+    man["files"]["contract.json"]["sha256"] = sha256_bytes((dst / "contract.json").read_bytes())
+    (dst / "manifest.json").write_text(json.dumps(man))
+    return str(dst)
+
+
+def test_an_export_claiming_an_absurd_rate_or_contradicting_itself_is_refused_naming_the_field(tiny_export,
+                                                                                            tmp_path):
+    """A contract of 1e9 Hz was accepted (the fake station then ran until killed); a policy
+    section whose frame width differs from the runtime section's was said as "the robot gives"
+    what the contract claims, naming neither the export nor the fields. Refused at load, before
+    any episode, in this process (one_line_error_here)."""
+    fast = edited_export(tiny_export, tmp_path / "fast", "runtime", control_hz=1e9)
+    one_line_error_here(["robot", "run", "--policy", fast, "--station", "fake", "--goals", "five"], 2,
+                        "ttmjx robot run: error:", os.path.join(fast, "contract.json"), "control_hz=1000000000.0",
+                        "1 to 1000 Hz")
+    wide = edited_export(tiny_export, tmp_path / "wide", "policy", obs_size=16)
+    one_line_error_here(["robot", "run", "--policy", wide, "--station", "fake", "--goals", "five"], 2,
+                        "ttmjx robot run: error:", os.path.join(wide, "contract.json"),
+                        "policy.obs_size 16 differs from runtime.obs_size 13")
+
+
 def test_robot_sweep_has_no_config_option_and_list_lengths_are_checked():
     """Refused while parsing, in this process (one_line_error_here)."""
     one_line_error_here(["robot", "sweep", "--policy", RUN, "--out", "x", "--config", "cell.toml"], 2,

@@ -296,7 +296,7 @@ def test_tampered_or_mismatched_exports_are_refused(ensemble_export, tmp_path):
     case("not an export", "not a ttmjx-policy-export", lambda d: _edit_contract(d, lambda c: c.__setitem__("format", "x")))
     case("runtime contract", "invalid runtime", lambda d: _edit_contract(
         d, lambda c: c["runtime"].__setitem__("obs_size", 15)))
-    case("runtime frame of another width", "the policy reads 13 values per frame, the robot gives 16",
+    case("runtime frame of another width", "contract.json: policy.obs_size 13 differs from runtime.obs_size 16",
          lambda d: _edit_contract(d, lambda c: c["runtime"].__setitem__("obs_size", 16)))
     case("unknown runtime key", "invalid runtime", lambda d: _edit_contract(
         d, lambda c: c["runtime"].__setitem__("pickle", True)))

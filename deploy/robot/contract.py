@@ -24,6 +24,9 @@ OBS_SIZES = observation.WIDTHS
 # two-axis gantry, joints JOINT_NAMES. Another robot (or a changed joint order) gets a new id.
 ROBOT_MODEL_ID = "abb-irb120t-on-2axis-gantry/v1"
 _ROBOT = Robot()
+# The control rates a runner paces (Hz): a contract outside is refused at load (one claiming 1e9 Hz
+# was accepted, and the fake station then ran until killed).
+PACED_HZ = (1.0, 1000.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,8 +47,9 @@ class Contract:
                                       # (ttmjx.world.config.Timing.extrapolate_s of the training world)
 
     def __post_init__(self):
-        if not self.control_hz > 0:
-            raise ValueError(f"Contract.control_hz={self.control_hz}, expected > 0")
+        if not PACED_HZ[0] <= self.control_hz <= PACED_HZ[1]:      # NaN too
+            raise ValueError(f"Contract.control_hz={self.control_hz!r}: expected a rate the runner can pace, "
+                             f"{PACED_HZ[0]:g} to {PACED_HZ[1]:g} Hz (ttmjx trains at 20, 60 or 100 Hz)")
         if self.frame_stack < 1:
             raise ValueError(f"Contract.frame_stack={self.frame_stack}, expected >= 1")
         if self.obs_size not in OBS_SIZES:

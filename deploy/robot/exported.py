@@ -256,7 +256,7 @@ def _runtime_of(doc: dict, directory: str) -> Contract:
     try:
         return contract_from_dict(doc["runtime"])
     except (TypeError, ValueError) as e:
-        raise ExportError(f"{directory}: invalid runtime contract: {e}") from e
+        raise ExportError(f"{os.path.join(directory, CONTRACT_FILE)}: invalid runtime contract: {e}") from e
 
 
 def _policy_of(doc: dict, runtime: Contract, directory: str) -> tuple[PolicySpec, int]:
@@ -268,12 +268,16 @@ def _policy_of(doc: dict, runtime: Contract, directory: str) -> tuple[PolicySpec
         members = int(pol["members"])
     except (KeyError, TypeError, ValueError) as e:
         raise ExportError(f"{directory}: invalid policy section ({e})") from e
+    path = os.path.join(directory, CONTRACT_FILE)
     if spec.obs_size != runtime.obs_size:
-        raise ExportError(f"the policy reads {spec.obs_size} values per frame, the robot gives "
-                          f"{runtime.obs_size}")
+        raise ExportError(f"{path}: policy.obs_size {spec.obs_size} differs from runtime.obs_size "
+                          f"{runtime.obs_size}: the policy reads {spec.obs_size} values per frame, the "
+                          f"contract's runtime section claims frames of {runtime.obs_size}; the export "
+                          f"contradicts itself (export the checkpoint again)")
     if spec.kind == "framestack" and spec.frame_stack != runtime.frame_stack:
-        raise ExportError(f"the frame-stack policy needs {spec.frame_stack} frames, the runtime "
-                          f"contract stacks {runtime.frame_stack}")
+        raise ExportError(f"{path}: policy.frame_stack {spec.frame_stack} differs from runtime.frame_stack "
+                          f"{runtime.frame_stack}: the frame-stack policy needs {spec.frame_stack} frames; the "
+                          f"export contradicts itself (export the checkpoint again)")
     return spec, members
 
 
