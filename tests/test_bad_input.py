@@ -563,6 +563,23 @@ def test_an_export_claiming_an_absurd_rate_or_contradicting_itself_is_refused_na
                         "policy.obs_size 16 differs from runtime.obs_size 13")
 
 
+def test_a_stale_bound_below_the_sensors_sample_age_is_refused_before_any_episode(tiny_export, tmp_path):
+    """--stale-ms 5 on the fake station (joints 250 Hz 2 ms late, ball 125 Hz 4 ms late: a ball
+    sample up to 12 ms old) held before any episode and ended with exit 1 and a summary of 0
+    episodes; the simulated station states its sensors' ages too. Exit 2 naming the flag and the
+    bound, nothing written; at the bound the session plays."""
+    out = tmp_path / "logs"
+    one_line_error_here(["robot", "run", "--station", "fake", "--goals", "five", "--stale-ms", "5", "--out", out], 2,
+                        "ttmjx robot run: error:", "--stale-ms 5", "ball samples are up to 12 ms old",
+                        "at least 12 ms")
+    one_line_error_here(["robot", "run", "--policy", tiny_export, "--station", "sim", "--goals", "five",
+                         "--stale-ms", "0.1", "--out", out], 2, "ttmjx robot run: error:", "--stale-ms 0.1",
+                        "samples are up to")
+    assert not out.exists()
+    run_here("robot", "run", "--station", "fake", "--goals", "0.7,0.3", "--stale-ms", "12", "--out", out)
+    assert json.loads((out / "session.json").read_text())["episodes"] == 1
+
+
 def test_robot_sweep_has_no_config_option_and_list_lengths_are_checked():
     """Refused while parsing, in this process (one_line_error_here)."""
     one_line_error_here(["robot", "sweep", "--policy", RUN, "--out", "x", "--config", "cell.toml"], 2,

@@ -57,6 +57,12 @@ class FakeRobot:
         self.sent_q: list[np.ndarray] = []
         self.true_at_send: list[np.ndarray] = []
 
+    @property
+    def max_sample_age_s(self) -> float:
+        """The oldest the newest delivered sample gets by design: one period plus the latency
+        (Runner refuses a stale bound below it)."""
+        return self.latency_s + 1.0 / self.rate_hz
+
     def true_q(self, t: float) -> np.ndarray:
         """[8] the joints at time t (t no earlier than the oldest kept segment)."""
         i = max(bisect.bisect_right(self._t, t) - 1, 0)
@@ -102,6 +108,12 @@ class FakeTracker:
         self.noise_m, self.rng = noise_m, np.random.default_rng(seed)
         self.throws: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._next_k = math.floor((clock.now() - latency_s) * rate_hz) + 1
+
+    @property
+    def max_sample_age_s(self) -> float:
+        """The oldest the newest delivered sample gets by design: one period plus the latency
+        (Runner refuses a stale bound below it)."""
+        return self.latency_s + 1.0 / self.rate_hz
 
     def throw(self, t_launch: float, pos=(1.75, 0.35, 0.95), vel=(-7.0, -0.3, 0.0)) -> None:
         self.throws.append((float(t_launch), np.asarray(pos, np.float64), np.asarray(vel, np.float64)))

@@ -31,6 +31,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import gc
+import math
 from collections import Counter
 from typing import Any, Callable, Protocol
 
@@ -171,6 +172,15 @@ class Runner:
         self.pose_rng = np.random.default_rng([int(seed), 11])
         self.robot, self.tracker, self.clock, self.policy = robot, tracker, clock, policy
         self.contract, self.config = contract, config
+        ages = [(age, what) for what, sensor in (("joint", robot), ("ball", tracker))
+                for age in [getattr(sensor, "max_sample_age_s", None)] if isinstance(age, (int, float))]
+        if ages:                                                # where the station states them
+            age, what = max(ages)
+            if not config.stale_s >= age - 1e-9:
+                raise ValueError(f"--stale-ms {config.stale_s * 1e3:g}: this station's {what} samples are up to "
+                                 f"{age * 1e3:.3g} ms old by design (a sample period plus the latency), so the "
+                                 f"runner would hold before any episode played; expected at least "
+                                 f"{math.ceil(age * 1e4 - 1e-6) / 10:g} ms")
         self.policy_hash = policy_hash or getattr(policy, "policy_hash", None) or "unknown"
         self.limits = limits_from_contract(contract)
         self.true_speed = np.asarray(contract.max_speed, np.float64)

@@ -151,6 +151,7 @@ class SimRobot:
 
     def __init__(self, station: "SimStation"):
         self.s = station
+        self.max_sample_age_s = station.max_sample_age_s(joint=True)     # Runner checks its stale bound
         self.sent_t: list[float] = []
         self.sent_q: list[np.ndarray] = []
         self.true_at_send: list[np.ndarray] = []
@@ -185,6 +186,7 @@ class SimTracker:
 
     def __init__(self, station: "SimStation"):
         self.s = station
+        self.max_sample_age_s = station.max_sample_age_s(joint=False)    # Runner checks its stale bound
         self._last = -math.inf
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
@@ -274,6 +276,14 @@ class SimStation:
         self._park()
         mujoco.mj_forward(self.m, self.d)
         return q0
+
+    def max_sample_age_s(self, joint: bool) -> float:
+        """The oldest the newest delivered joint (or ball) sample gets by design: one sample
+        period, plus the latency at the top of its per-throw spread, plus the jitter (drops aside)."""
+        tm = self.timing
+        every, latency = ((self.joint_every, tm.joint_latency_s) if joint else
+                          (self.ball_every, tm.tracker_latency_s))
+        return every * self.dt + latency + tm.spreads()[1 if joint else 0] + tm.jitter_s
 
     def _steps_per(self, hz: float | None, name: str) -> int:
         return physics_steps_per_sample(hz, self.cfg.physics_dt, name)
