@@ -281,12 +281,41 @@ def seeds_trainer(cfgs: list, progress: bool = True) -> list[table_cells.Outcome
     return rl_seeds(cfgs, progress) if isinstance(cfgs[0], agents.BaselineConfig) else table_cells.goalseye_seeds(cfgs, progress)
 
 
+# brax PPO at --scale tiny on 2 CPU cores (#48): ~57 environment steps/s over the 5 seeds of a
+# program, compile aside; taken as proportional to the cores. On a GPU: docs/BENCHMARKS.md.
+CPU_STEPS_PER_S_PER_CORE = 57 / 2
+
+
+def cpu_estimate(cells: list, results_dir: str, scale: str, platform: str | None = None,
+                 cores: int | None = None) -> str | None:
+    """One line stating, before an RL cell starts on the CPU, the environment steps still to run
+    and the time they take there, and pointing to the GPU; None on an accelerator or with no RL
+    cell to run (finished cells are skipped)."""
+    platform = platform or jax.default_backend()
+    todo = [c for c in cells if isinstance(c.config, agents.BaselineConfig)
+            and not os.path.exists(table_cells.result_path(results_dir, c))]
+    if platform != "cpu" or not todo:
+        return None
+    cores = cores or os.cpu_count() or 1
+    steps = sum(agents.schedule(c.config).num_timesteps for c in todo)
+    rate = CPU_STEPS_PER_S_PER_CORE * cores
+    seconds = steps / rate
+    when = f"{seconds / 3600:.1f} h" if seconds >= 5400 else f"{max(1, round(seconds / 60))} min"
+    return (f"[baseline {scale}] on the CPU: {len(todo)} RL cell(s), {steps:,} environment steps to run, about "
+            f"{when} at ~{rate:.0f} steps/s ({cores} cores; brax PPO measured ~57 steps/s on 2); a GPU runs "
+            f"them at tens of thousands of steps/s (docs/BENCHMARKS.md): run it there, or Ctrl-C now and the "
+            f"same command resumes")
+
+
 def run(methods: list[str], scale: str, seeds: int, out: str, trajectories: int | None = None,
         reward: RewardConfig = RewardConfig(), progress: bool = True, command: str = "", rl: dict | None = None,
         first_seed: int = 0) -> dict:
     """Train the cells that are not finished, then rebuild the table from every finished result
     (those of other seeds in `out` too: machines that ran other seeds add to one table)."""
     cells = plan(methods, scale, seeds, out, trajectories, reward, rl, first_seed)
+    estimate = cpu_estimate(cells, os.path.join(out, "results"), scale)
+    if estimate:
+        log(estimate, file=sys.stderr)
     stopped = table_cells.run_cells(cells, os.path.join(out, "results"), trainer, progress, f"baseline {scale}",
                                     log=lambda m: log(m, file=sys.stderr), batch=seeds_trainer)
     return table_cells.finish(cells, out, stopped, lambda: build_report(scale, out, command))

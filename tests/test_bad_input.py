@@ -580,6 +580,28 @@ def test_a_stale_bound_below_the_sensors_sample_age_is_refused_before_any_episod
     assert json.loads((out / "session.json").read_text())["episodes"] == 1
 
 
+def test_baseline_on_the_cpu_states_the_expected_time_before_it_starts(tmp_path, capsys, monkeypatch):
+    """`ttmjx baseline ppo --scale tiny` ran ~77 minutes on 2 CPU cores saying nothing of it: one
+    stderr line before the first cell, with the steps, the time and the GPU (the training
+    itself replaced here: the line is all this test is about)."""
+    from eval import baselines, table_cells
+
+    def started(*args, **kwargs):
+        raise SystemExit(7)
+    monkeypatch.setattr(table_cells, "run_cells", started)
+    monkeypatch.setattr(baselines.jax, "default_backend", lambda: "cpu")
+    monkeypatch.setattr(baselines.os, "cpu_count", lambda: 2)
+    with pytest.raises(SystemExit) as ex:
+        run_here("baseline", "ppo", "--scale", "tiny", "--out", tmp_path / "b")
+    said = [ln for ln in capsys.readouterr().err.splitlines() if "on the CPU" in ln]
+    assert ex.value.code == 7 and len(said) == 1, said
+    assert all(w in said[0] for w in ("5 RL cell(s)", "262,400 environment steps", "about 77 min", "a GPU")), said
+    monkeypatch.setattr(baselines.jax, "default_backend", lambda: "gpu")
+    with pytest.raises(SystemExit):
+        run_here("baseline", "ppo", "--scale", "tiny", "--out", tmp_path / "b")
+    assert "on the CPU" not in capsys.readouterr().err
+
+
 def test_robot_sweep_has_no_config_option_and_list_lengths_are_checked():
     """Refused while parsing, in this process (one_line_error_here)."""
     one_line_error_here(["robot", "sweep", "--policy", RUN, "--out", "x", "--config", "cell.toml"], 2,
