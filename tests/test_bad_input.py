@@ -2,6 +2,7 @@
 (bad input) or 1 (refused work), one line on stderr that starts with `ttmjx`, no traceback,
 and nothing written. The commands run in-process (ttmjx.cli.main), so the table is fast."""
 import contextlib
+import dataclasses
 import io
 import os
 import shutil
@@ -208,6 +209,10 @@ NAMED = [   # (argv, exit code, substrings the one line must hold)
     ("ablate demos --scale tiny --out {tmp}/a_file/sub", 2, ["ttmjx ablate: error:", "--out", "a_file/sub"]),
     ("baseline ppo --scale tiny --out {tmp}/a_file", 2, ["ttmjx baseline: error:", "--out", "a_file", "is a file"]),
     ("report {empty} --out {tmp}/a_file/sub", 2, ["ttmjx report: error:", "--out", "a_file/sub"]),
+    # the paper procedure's sizes named as flags ("final=1 episodes" before)
+    ("demos --source paper --rebuild all --n 1 --out {tmp}/d", 2, ["ttmjx demos: error:", "--n 1", "at least 100"]),
+    ("demos --source paper --rebuild all --es-generations 1 1 --out {tmp}/d", 2,
+     ["--es-generations 1 1", "too few to converge"]),
     # meaningless work: a budget that ends before any environment has played one whole episode
     ("baseline ppo --scale tiny --trajectories 1 --out {tmp}/b", 2,
      ["ttmjx baseline: error:", "trajectory budget 1", "2 environments", "whole 160-step episode", "smallest budget is 2"]),
@@ -732,6 +737,47 @@ def test_a_torn_metrics_line_is_said_on_resume_and_the_rows_kept(recorded_tiny_r
     said = [ln for ln in (done.stdout + done.stderr).splitlines() if "cut short" in ln]   # the run's progress log
     assert said and str(metrics) in said[0], (done.stdout + done.stderr)[-2000:]
     assert metrics.read_text() == whole
+
+
+def test_a_deleted_metrics_log_is_said_on_resume(recorded_tiny_run, oracle_demos, tmp_path):
+    """A resumed run whose metrics.jsonl was deleted lost the rows before its checkpoint without
+    a word: one warning line on stderr naming the file and the rows lost; the run goes on."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(recorded_tiny_run[0], run_dir)
+    metrics = run_dir / "metrics.jsonl"
+    n = len(metrics.read_text().splitlines())
+    metrics.unlink()
+    done = resume_tiny(run_dir, oracle_demos)
+    assert done.returncode == 0, done.stderr[-2000:]
+    said = [ln for ln in done.stderr.splitlines() if "metrics.jsonl" in ln]
+    assert len(said) == 1 and said[0].startswith("[ttmjx] warning:") and str(metrics) in said[0], done.stderr[-2000:]
+    assert f"the rows of {n} of the {n} iterations" in said[0] and "missing" in said[0], said[0]
+
+
+def test_a_corrupt_demos_file_in_a_resumed_run_is_refused_naming_it(recorded_tiny_run, tmp_path):
+    """The run's own demonstrations (RUN/demos, its demo_dir unset) damaged: exit 1 naming the
+    file, nothing changed (a restart from scratch would have found it; a resume never did)."""
+    from training.runconfig import from_json
+    from training.trainer import Run
+    run_dir = tmp_path / "run"
+    shutil.copytree(recorded_tiny_run[0], run_dir)
+    cfg = from_json(json.loads((run_dir / "config.json").read_text()))
+    demos = run_dir / "demos"
+    shutil.copytree(cfg.demo_dir, demos)            # as a run without --demo-dir collects them
+    (demos / "trajectories.npz").write_bytes((demos / "trajectories.npz").read_bytes()[:1000])
+    cfg = dataclasses.replace(cfg, demo_dir=None, run_dir=str(run_dir))
+    before = listing(run_dir)
+    from training.trainer import DamagedRun
+    with pytest.raises(DamagedRun, match=str(demos / "trajectories.npz") + ": truncated or corrupt"):
+        Run(cfg, progress=False).check_demos()
+    assert listing(run_dir) == before
+    from ttmjx.commandline import run as run_command, Command
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), pytest.raises(SystemExit) as ex:
+        run_command({"train": Command(None, lambda a: Run(cfg, progress=False).check_demos(), "", parse=lambda r: None)},
+                    ["train"])
+    one_line_error(subprocess.CompletedProcess([], ex.value.code, "", err.getvalue()), 1, "ttmjx train: error:",
+                   str(demos / "trajectories.npz"), "truncated or corrupt", "delete")
 
 
 def test_a_stop_that_lands_where_python_drops_exceptions_is_sent_again():

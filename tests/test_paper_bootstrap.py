@@ -109,7 +109,8 @@ def test_bad_sizes_are_refused_with_their_numbers():
     bp.Procedure(es_generations=(130, 5)).check(rebuild_es=False)      # the shipped ES: not trained
     with pytest.raises(ValueError, match=r"narrow=100 ES episodes"):
         bp.Procedure(narrow=100).check(False)
-    with pytest.raises(ValueError, match=r"final=10 episodes is less than one practice round \(100\)"):
+    with pytest.raises(ValueError, match=r"final=10: the final stage's 10 episodes are less than one practice round "
+                                         r"of the procedure \(100\)"):
         bp.Procedure(final=10).check(False)
 
 

@@ -75,20 +75,25 @@ class Procedure:
     es_val: int = 64
     seed: int = 0
 
-    def check(self, rebuild_es: bool) -> None:
-        """ValueError, one line with the numbers, when the sizes cannot do what the procedure says."""
+    def check(self, rebuild_es: bool, flags: dict | None = None) -> None:
+        """ValueError, one line with the numbers, when the sizes cannot do what the procedure says;
+        `flags` names a field as the command line sets it ({'final': '--n'})."""
+        flags = flags or {}
         if self.narrow * 0.3 < MIN_NARROW_RETURNS:
             raise ValueError(f"narrow={self.narrow} ES episodes give too few returns to imitate: at least "
                              f"{int(np.ceil(MIN_NARROW_RETURNS / 0.3))} are needed")
         for name in ("shift", "expand", "final"):
             if getattr(self, name) < self.episodes_per_round:
-                raise ValueError(f"{name}={getattr(self, name)} episodes is less than one practice round "
-                                 f"({self.episodes_per_round})")
+                said = f"{flags[name]} {getattr(self, name)}" if name in flags else f"{name}={getattr(self, name)}"
+                raise ValueError(f"{said}: the {name} stage's {getattr(self, name)} episodes are less than one "
+                                 f"practice round of the procedure ({self.episodes_per_round}); expected at least "
+                                 f"{self.episodes_per_round}")
         if rebuild_es:
             for phase, gens in zip(("contact", "return"), self.es_generations):
                 n = gens * self.es_population * self.es_throws
                 if n < MIN_ES_EPISODES:
-                    raise ValueError(f"ES {phase} phase: {gens} generations x {self.es_population} x "
+                    raise ValueError(f"{flags.get('es_generations', 'es_generations')} "
+                                     f"{' '.join(map(str, self.es_generations))}: ES {phase} phase: {gens} generations x {self.es_population} x "
                                      f"{self.es_throws} throws = {n} episodes, too few to converge "
                                      f"(at least {MIN_ES_EPISODES})")
 

@@ -168,7 +168,8 @@ class DemosArgs(WorldArgs):
                                  f"not {self.distribution}: use --rebuild all")
         if self.rebuild != "none":
             from training.bootstrap_paper import Procedure
-            Procedure(final=self.n, seed=self.seed, es_generations=self.es_generations).check(self.rebuild == "all")
+            Procedure(final=self.n, seed=self.seed, es_generations=self.es_generations).check(
+                self.rebuild == "all", flags={"final": "--n", "es_generations": "--es-generations"})
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
