@@ -121,6 +121,11 @@ def check_finite(state, loss, it: int, last_saved: int):
 
 
 # -- the run -------------------------------------------------------------------------------
+class DamagedRun(RuntimeError):
+    """A file of a run directory being resumed that is there but unreadable (exit 1: a fault of
+    the disk or of whatever wrote it, not of the command)."""
+
+
 class Run:
     """A training run in cfg.run_dir: fresh or resumed. `evaluate` (params, backend, key) -> dict
     is called at the evaluation iterations; None skips evaluation."""
@@ -262,6 +267,20 @@ class Run:
             print(f"[ttmjx] {path}: {why}; rewritten from the config saved in checkpoint {loaded.step}",
                   file=sys.stderr, flush=True)
 
+    def check_demos(self) -> None:
+        """A resumed run's own demonstrations (RUN/demos, collected at its start; its checkpoints
+        hold them in the pool) read whole: a damaged file is a DamagedRun naming it, not left for
+        a restart from scratch (or `ttmjx report`) to find."""
+        from ttmjx.world import record
+        path = os.path.join(self.cfg.run_dir, "demos")
+        if self.cfg.demo_dir or not os.path.exists(os.path.join(path, "trajectories.npz")):
+            return
+        try:
+            record.load(path)
+        except record.RecordError as e:
+            raise DamagedRun(f"{e}; this run's checkpoints hold its demonstrations: restore the file, or delete "
+                             f"{path} and run the same command to resume without it") from None
+
     def check_same_config(self, saved: dict):
         """ValueError if `saved` (a run's config) computes differently from this run's."""
         mine = to_json(self.cfg)
@@ -289,11 +308,21 @@ class Run:
             self.save(ck)
             self.metrics.start()
             return ck
-        self.log(f"[ttmjx] resuming {cfg.run_dir} at iteration {int(ck.counters.iteration)}")
-        self.metrics.truncate(int(ck.counters.iteration))
+        self.check_demos()
+        it = int(ck.counters.iteration)
+        self.log(f"[ttmjx] resuming {cfg.run_dir} at iteration {it}")
+        existed = os.path.exists(self.metrics.path)
+        self.metrics.truncate(it)
         if self.metrics.torn:
             self.log(f"[ttmjx] {self.metrics.path}: its last line was cut short ({len(self.metrics.torn)} bytes, a crash "
                      f"mid-write) and is dropped; the rows up to the checkpoint are kept and the rest is redone")
+        kept = {r.get("iteration") for r in self.metrics.rows()}
+        lost = [i for i in range(it) if i not in kept]
+        if lost and mesh.is_primary():
+            print(f"[ttmjx] warning: {self.metrics.path}: {'missing' if not existed else 'incomplete'}; the rows of "
+                  f"{len(lost)} of the {it} iterations before the checkpoint are lost (iterations "
+                  f"{lost[0]}-{lost[-1]}; no checkpoint keeps them), so its learning curve starts after them",
+                  file=sys.stderr, flush=True)
         return self.absorb_logs(ck) if cfg.data else ck
 
     # -- one iteration -----------------------------------------------------------------------
