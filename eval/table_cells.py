@@ -83,6 +83,27 @@ def check_result_matches(path: str, cell: Cell) -> None:
                          f"delete it or choose another --out")
 
 
+def check_run_matches(cell: Cell) -> None:
+    """ValueError (the trainer's own, training.trainer.check_same_config) if the cell's
+    unfinished run directory was started with another configuration: refused by the plan as
+    its training would refuse it. An unreadable config.json is the trainer's to judge."""
+    path = os.path.join(cell.run_dir, "config.json")
+    from training.runconfig import RunConfig
+    if not isinstance(cell.config, RunConfig) or not os.path.isfile(path):     # RL cells: their own state
+        return
+    try:
+        saved = load_result(path)
+    except (OSError, ValueError):
+        return
+    if isinstance(saved, dict):
+        from training.trainer import check_same_config
+        try:
+            check_same_config(cell.config, saved)
+        except ValueError as e:
+            raise ValueError(f"{str(e).split(';')[0]}: cell {cell.name} of this command cannot resume it; delete "
+                             f"{cell.run_dir} or choose another --out") from None
+
+
 TABLE_ENTRIES = ("runs", "results", "table.md", "curves.png", "landings", "summary.json")
 
 
@@ -114,6 +135,8 @@ def planned_cells(out: str, entries, make_config) -> list[Cell]:
         done = result_path(os.path.join(out, "results"), cell)
         if os.path.exists(done):
             check_result_matches(done, cell)
+        else:
+            check_run_matches(cell)
         chosen.append(cell)
     return chosen
 

@@ -607,6 +607,25 @@ def test_baseline_on_the_cpu_states_the_expected_time_before_it_starts(tmp_path,
     assert "on the CPU" not in capsys.readouterr().err
 
 
+def test_ablate_plan_refuses_a_cell_run_started_with_another_config(tmp_path):
+    """`ablate --plan` said "to do" for a cell whose unfinished run was started with another
+    configuration (another --set), which the real run's trainer then refused: the plan refuses
+    it as the run would, one line naming the run directory and the fields."""
+    from eval import ablate
+    from training.runconfig import to_json
+    out = tmp_path / "ab"
+    cell = ablate.plan("demos", "tiny", 1, str(out), "d10")[0]
+    os.makedirs(cell.run_dir)
+    other = dataclasses.replace(cell.config, train=dataclasses.replace(cell.config.train, learning_rate=1e-2))
+    (out / "runs" / "d10-seed0" / "config.json").write_text(json.dumps(to_json(other)))
+    before = listing(out)
+    for argv in (["--plan"], []):
+        one_line_error_here(["ablate", "demos", "--scale", "tiny", "--seeds", "1", "--cells", "d10", "--out", out,
+                             *argv], 2, "ttmjx ablate: error:", cell.run_dir, "different config", "'train'",
+                            "delete")
+    assert listing(out) == before
+
+
 def test_robot_sweep_has_no_config_option_and_list_lengths_are_checked():
     """Refused while parsing, in this process (one_line_error_here)."""
     one_line_error_here(["robot", "sweep", "--policy", RUN, "--out", "x", "--config", "cell.toml"], 2,

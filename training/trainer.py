@@ -121,6 +121,18 @@ def check_finite(state, loss, it: int, last_saved: int):
 
 
 # -- the run -------------------------------------------------------------------------------
+def check_same_config(cfg: RunConfig, saved: dict) -> None:
+    """ValueError if `saved` (a run directory's config) computes differently from `cfg`: the
+    run in cfg.run_dir cannot be resumed with it."""
+    mine = to_json(cfg)
+    if "demo_source" in saved:   # an old name ("scripted") means today's "oracle"
+        saved = {**saved, "demo_source": LEGACY.get(saved["demo_source"], saved["demo_source"])}
+    diff = {k for k in set(saved) | set(mine) if saved and saved.get(k) != mine.get(k) and k not in RESUME_MAY_CHANGE}
+    if diff:
+        raise ValueError(f"{cfg.run_dir} holds a run with a different config (fields {sorted(diff)}); "
+                         f"resume with the same config or choose a new run_dir")
+
+
 class DamagedRun(RuntimeError):
     """A file of a run directory being resumed that is there but unreadable (exit 1: a fault of
     the disk or of whatever wrote it, not of the command)."""
@@ -283,13 +295,7 @@ class Run:
 
     def check_same_config(self, saved: dict):
         """ValueError if `saved` (a run's config) computes differently from this run's."""
-        mine = to_json(self.cfg)
-        if "demo_source" in saved:   # an old name ("scripted") means today's "oracle"
-            saved = {**saved, "demo_source": LEGACY.get(saved["demo_source"], saved["demo_source"])}
-        diff = {k for k in set(saved) | set(mine) if saved and saved.get(k) != mine.get(k) and k not in RESUME_MAY_CHANGE}
-        if diff:
-            raise ValueError(f"{self.cfg.run_dir} holds a run with a different config (fields {sorted(diff)}); "
-                             f"resume with the same config or choose a new run_dir")
+        check_same_config(self.cfg, saved)
 
     def start(self) -> Checkpointed:
         """A fresh run (config, initial state, empty log) or the resumed one."""
