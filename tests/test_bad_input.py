@@ -213,6 +213,9 @@ NAMED = [   # (argv, exit code, substrings the one line must hold)
     ("demos --source paper --rebuild all --n 1 --out {tmp}/d", 2, ["ttmjx demos: error:", "--n 1", "at least 100"]),
     ("demos --source paper --rebuild all --es-generations 1 1 --out {tmp}/d", 2,
      ["--es-generations 1 1", "too few to converge"]),
+    # throws too slow for the flight limit: both fields named (the limit alone before)
+    (TRAIN + " --world.throws.narrow-speed 0.5 1", 2, ["--world.throws.max-flight-s", "--world.throws.narrow-speed",
+                                                        "up to 1 m/s", "no throw"]),
     # meaningless work: a budget that ends before any environment has played one whole episode
     ("baseline ppo --scale tiny --trajectories 1 --out {tmp}/b", 2,
      ["ttmjx baseline: error:", "trajectory budget 1", "2 environments", "whole 160-step episode", "smallest budget is 2"]),

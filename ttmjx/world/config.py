@@ -519,15 +519,16 @@ def check_world(w: "World", prefix: str = "world") -> None:
     # The fastest possible flight: the shortest horizontal distance from a launch to an aim at the
     # highest speed; a limit below it leaves no valid throw (every candidate redrawn forever).
     if th.name == "narrow":
-        dist, speed = th.narrow_launch[0] - th.narrow_aim_x[1], th.narrow_speed[1]
+        dist, speed, field = th.narrow_launch[0] - th.narrow_aim_x[1], th.narrow_speed[1], "narrow_speed"
     elif th.name == "any":
-        dist, speed = th.any_launch_x[0] - th.any_aim_x[1], th.any_speed[1]
+        dist, speed, field = th.any_launch_x[0] - th.any_aim_x[1], th.any_speed[1], "any_speed"
     else:
-        dist, speed = th.varied_distance[0], th.varied_speed
+        dist, speed, field = th.varied_distance[0], th.varied_speed, "varied_speed"
     if dist > 0 and th.max_flight_s < dist / speed:
         raise _bad(f"{tp}.max_flight_s", th.max_flight_s,
-                   f"at least {dist / speed:.3g} s: the fastest {th.name} throw needs that long to cover "
-                   f"{dist:.3g} m at {speed:g} m/s, so no throw would be valid")
+                   f"at least {dist / speed:.3g} s: the fastest {th.name} throw ({_flag(f'{tp}.{field}')} up to "
+                   f"{speed:g} m/s) needs that long to cover {dist:.3g} m, so no throw would be valid; raise one "
+                   f"or the other")
 
 
 def to_dict(cfg) -> dict:
