@@ -98,7 +98,17 @@ def method_config(method: str, scale: str, seed: int, run_dir: str, trajectories
                      "lfp": {"practice": False, "demos": ablate.ALL_TRAJECTORIES,
                              "pretrain_steps": ablate.GOALSEYE_UPDATES, "preset": "lfp"},
                      "goalseye": {}}[method]
-        return ablate.apply(base, overrides)
+        cfg = ablate.apply(base, overrides)
+        # GoalsEye's budget holds its demonstrations and at least one practice round (LFP's
+        # updates are GoalsEye's, so the same); GCSL's one round: fewer trains the method on nothing.
+        need = (cfg if method == "gcsl" else base).demos + base.episodes_per_ssp
+        if base.total_trajectories < need:
+            what = (f"one practice round of {base.episodes_per_ssp:,} episodes" if method == "gcsl" else
+                    f"GoalsEye's {base.demos:,} demonstrations and one practice round of {base.episodes_per_ssp:,} "
+                    f"episodes")
+            raise ValueError(f"trajectory budget {base.total_trajectories:,} is less than {what}; the smallest "
+                             f"budget is {need:,}")
+        return cfg
     except (ValueError, TypeError) as e:
         raise ValueError(f"baseline {method} at scale {scale}: {e}") from None
 

@@ -219,6 +219,9 @@ NAMED = [   # (argv, exit code, substrings the one line must hold)
     # meaningless work: a budget that ends before any environment has played one whole episode
     ("baseline ppo --scale tiny --trajectories 1 --out {tmp}/b", 2,
      ["ttmjx baseline: error:", "trajectory budget 1", "2 environments", "whole 160-step episode", "smallest budget is 2"]),
+    ("baseline goalseye --scale tiny --trajectories 1 --out {tmp}/b", 2,
+     ["baseline goalseye", "trajectory budget 1", "200 demonstrations", "practice round", "smallest budget is 232"]),
+    ("baseline gcsl --scale tiny --trajectories 1 --out {tmp}/b", 2, ["baseline gcsl", "smallest budget is 32"]),
 ]
 
 
