@@ -93,8 +93,9 @@ class Procedure:
                 n = gens * self.es_population * self.es_throws
                 if n < MIN_ES_EPISODES:
                     raise ValueError(f"{flags.get('es_generations', 'es_generations')} "
-                                     f"{' '.join(map(str, self.es_generations))}: ES {phase} phase: {gens} generations x {self.es_population} x "
-                                     f"{self.es_throws} throws = {n} episodes, too few to converge "
+                                     f"{' '.join(map(str, self.es_generations))}: ES {phase} phase: {gens} "
+                                     f"generations x {self.es_population} x {self.es_throws} throws = {n} "
+                                     f"episodes, too few to converge "
                                      f"(at least {MIN_ES_EPISODES})")
 
 
