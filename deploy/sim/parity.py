@@ -47,7 +47,7 @@ FRAME_TOL = COMMAND_TOL = 1e-4
 # The sensed velocity is a slope over one tracker interval (8 ms at 125 Hz): FRAME_TOL over it.
 VELOCITY_TOL = FRAME_TOL * 125.0
 LANDING_TOL = 1e-3
-# What is compared per step: (name, array on each side, columns).
+# Each quantity compared per control step, with its tolerance.
 TOLERANCES = {"joints_seen": FRAME_TOL, "ball_seen": FRAME_TOL, "ball_vel_seen": VELOCITY_TOL,
               "goal": FRAME_TOL, "command": COMMAND_TOL}
 QUANTITIES = tuple(TOLERANCES)
@@ -98,7 +98,7 @@ def averaged(policy: Policy) -> Policy:
 
 
 def world_play(loaded: Loaded, tm: Timing, backend: str, n: int, seed: int) -> WorldPlay:
-    """The export played by the world on `backend` under `timing`, toward n uniform goals of
+    """The export played by the world on `backend` under the timing tm, toward n uniform goals of
     `ttmjx eval --seed seed`'s draw."""
     from models.policy import make_policy
     from ttmjx.world.backends import Backend
