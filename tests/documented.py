@@ -77,3 +77,63 @@ def check_metrics_rows(rows: list[dict], cfg) -> None:
         seen = r["trajectories"]
     assert rows[-1]["trajectories"] == cfg.total_trajectories
     assert any("eval_goals" in r for r in rows) and any(r["phase"] == "practice" for r in rows)
+
+
+SWEEP_KEYS = {"policy", "profile", "base_timing", "trained_ranges", "goals", "seed", "series", "plan", "points",
+              "sessions_played"}
+SWEEP_POINT_KEYS = GOAL_METRICS | {"series", "added_ms", "added_jitter_ms", "episodes", "played_within_30cm",
+                                   "on_opponent", "mode", "faults", "within_trained", "outside"}
+
+
+def check_sweep(out_dir: str, returned: dict, policy_dir: str, goals, seed: int, added_ms, jitter_ms) -> dict:
+    """`ttmjx robot sweep`'s sweep.json holds the keys DATA.md ("Timing sweeps") names and they mean
+    it: the plan, the base timing (the contract's centre), the points series by series, rates over
+    every goal, `within_trained`/`outside` as the timing check judges each point's timing, and
+    `sessions_played` the distinct timings. Returns sweep.json."""
+    import dataclasses
+
+    from deploy.robot.timing_check import outside_trained, trained_timing
+    from deploy.robot.exported import read_contract
+    from deploy.robot.modes import Mode
+    from ttmjx.world import files
+    from ttmjx.world.config import Timing, from_dict, to_dict
+    saved = json.load(open(os.path.join(out_dir, "sweep.json")))
+    assert saved == json.loads(json.dumps(files.json_safe(returned)))
+    assert set(saved) == SWEEP_KEYS, set(saved) ^ SWEEP_KEYS
+    doc = read_contract(policy_dir)
+    record = trained_timing(doc, policy_dir)
+    assert saved["policy"] == policy_dir and saved["profile"] == "export" and saved["seed"] == seed
+    assert saved["base_timing"] == json.loads(json.dumps(to_dict(record["timing"].centre())))
+    assert saved["base_timing"] == doc["timing"]["centre"] and saved["trained_ranges"] == doc["timing"]["ranges"]
+    goals = np.asarray(goals, np.float64)
+    assert saved["goals"] == len(goals)
+    assert set(saved["plan"]) == {"export", "goals", "added_ms", "jitter_ms"}
+    assert saved["plan"]["export"] == files.sha256_file(os.path.join(policy_dir, "manifest.json"))
+    assert np.allclose(saved["plan"]["goals"], goals, atol=1e-6)
+    assert saved["plan"]["added_ms"] == list(added_ms) and saved["plan"]["jitter_ms"] == list(jitter_ms)
+    base = from_dict(Timing, saved["base_timing"])
+    added = {"ball": ("tracker_latency_s",), "action": ("action_delay_s",), "jitter": ("jitter_s",),
+             "all": ("tracker_latency_s", "action_delay_s", "jitter_s")}
+
+    def timing_at(s, a, j):                       # DATA.md: each series' ms added to its Timing fields
+        return dataclasses.replace(base, ideal_timing=False, **{
+            f: getattr(base, f) + (j if f == "jitter_s" else a) / 1000.0 for f in added[s]})
+    want = [(s, j if s == "jitter" else a, j if s in ("jitter", "all") else 0.0)
+            for s in saved["series"] for a, j in zip(added_ms, jitter_ms)]
+    assert [(p["series"], p["added_ms"], p["added_jitter_ms"]) for p in saved["points"]] == want
+    timings = set()
+    for p, (s, a, j) in zip(saved["points"], want):
+        assert set(p) == SWEEP_POINT_KEYS, set(p) ^ SWEEP_POINT_KEYS
+        tm = timing_at(s, a, j)
+        timings.add(tuple(sorted(to_dict(tm).items())))
+        assert p["outside"] == outside_trained(record, tm) and p["within_trained"] == (not p["outside"])
+        n = p["episodes"]
+        assert 0 < n <= len(goals) and p["goals"] == n
+        assert 0 <= p["hit_rate"] <= n / len(goals)
+        assert p["within_30cm"] == pytest.approx(p["played_within_30cm"] * n / len(goals))
+        assert p["within_20cm"] <= p["within_30cm"] <= p["hit_rate"]
+        assert p["on_opponent"] == pytest.approx(p["on_table_rate"])
+        assert p["mode"] in {m.value for m in Mode} and (p["mode"] == "idle") <= (n == len(goals))
+        assert all(isinstance(v, int) and v >= 0 for v in p["faults"].values())
+    assert saved["sessions_played"] == len(timings)
+    return saved

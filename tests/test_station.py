@@ -24,6 +24,7 @@ from deploy.robot import (
     load_export,
 )
 from deploy.sim.export import export
+from documented import check_sweep
 from deploy.sim.station import SimClock, SimStation, complete_episode, play, run_sim
 from models import PolicyConfig, identity_normalizer, init_params
 from training.data import relabel
@@ -221,3 +222,15 @@ def test_robot_sweep_plays_every_point_and_its_zero_point_is_the_plain_run(tiny_
     plain = run_sim(tiny_export, goals, None, seed=1, charge_compute=False)
     for k in ("within_30cm", "within_20cm", "hit_rate"):
         assert out["points"][0][k] == out["points"][2][k] == plain["metrics"][k], k
+    # every field as docs/DATA.md ("Timing sweeps") describes it
+    saved = check_sweep(str(tmp_path / "sweep"), out, tiny_export, goals, 1, [0.0, 50.0], [0.0, 2.0])
+    # a point off zero is the session at the base timing with its ms added (ball: tracker latency)
+    from deploy.robot.runner import RunnerConfig
+    from ttmjx.world.config import from_dict
+    base = from_dict(Timing, saved["base_timing"])
+    late = dataclasses.replace(base, ideal_timing=False, tracker_latency_s=base.tracker_latency_s + 0.05)
+    again = run_sim(tiny_export, goals, None, seed=1, charge_compute=False, timing=late, allow_untrained=True,
+                    config=RunnerConfig(stale_s=0.1 + 0.05))
+    assert again["episodes"] == saved["points"][1]["episodes"] and again["faults"] == saved["points"][1]["faults"]
+    for k in ("within_30cm", "within_20cm", "hit_rate"):
+        assert saved["points"][1][k] == pytest.approx(again["metrics"][k] * again["episodes"] / len(goals)), k
