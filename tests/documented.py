@@ -137,3 +137,17 @@ def check_sweep(out_dir: str, returned: dict, policy_dir: str, goals, seed: int,
         assert all(isinstance(v, int) and v >= 0 for v in p["faults"].values())
     assert saved["sessions_played"] == len(timings)
     return saved
+
+
+def data_md_row(first_cell: str) -> str:
+    """The row of a table in docs/DATA.md whose first cell is `first_cell` (e.g. '`contract.json`')."""
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs", "DATA.md")
+    rows = [line for line in open(path) if line.startswith(f"| {first_cell} |")]
+    assert len(rows) == 1, (first_cell, len(rows))
+    return rows[0]
+
+
+def named_in(row: str, keys) -> None:
+    """Every key is named in the DATA.md row, in backquotes."""
+    missing = sorted(k for k in keys if f"`{k}`" not in row)
+    assert not missing, f"not documented in docs/DATA.md: {missing}"

@@ -167,6 +167,62 @@ def test_export_round_trip_and_golden_self_test(ensemble_export):
     np.testing.assert_allclose(pol.run(frames, stacks), want, rtol=0, atol=1e-5)
 
 
+CONTRACT_KEYS = {"format", "version", "robot", "runtime", "observation", "action", "goal", "policy", "normalization",
+                 "weights", "golden", "onnx", "source", "world", "timing"}
+POLICY_KEYS = {"kind", "hidden", "layers", "obs_size", "frame_stack", "input_frames", "members", "ensemble_rule",
+               "state", "cell", "trained_control_hz"}
+TIMING_KEYS = {"model", "ranges", "ideal", "randomized_per_episode", "centre", "meaning", "sha256"}
+
+
+@pytest.mark.parametrize("which", ["lstm", "framestack"])
+def test_manifest_and_contract_hold_the_documented_keys_and_they_mean_it(which, ensemble_export, mlp_export):
+    """docs/DATA.md ("Policy exports"): every key of manifest.json and contract.json (top level, the
+    policy's and the timing's) is one the docs name, every one they name is there, and the cheap
+    ones mean it: the hashes and sizes are the files', the rate, observation size and members are
+    the export's, the timing record is the training World's."""
+    from deploy.robot.contract import REAL_OBS_SIZE
+    from deploy.robot.exported import EXPORT_FORMAT
+    from deploy.robot.timing_check import record_hash
+    from documented import data_md_row, named_in
+    from ttmjx.world.config import to_dict
+    out, members, kind = ((ensemble_export[0], 3, "lstm") if which == "lstm" else (mlp_export, 2, "framestack"))
+    manifest = json.load(open(os.path.join(out, MANIFEST_FILE)))
+    assert set(manifest) == {"format", "format_version", "files"}
+    named_in(data_md_row("`manifest.json`"), manifest)
+    assert manifest["format"] == EXPORT_FORMAT == "ttmjx-policy-export" and manifest["format_version"] == 2
+    assert sorted(manifest["files"]) == sorted(set(os.listdir(out)) - {MANIFEST_FILE})
+    blobs = {name: open(os.path.join(out, name), "rb").read() for name in manifest["files"]}
+    for name, entry in manifest["files"].items():
+        assert entry == {"sha256": sha256_bytes(blobs[name]), "bytes": len(blobs[name])}, name
+    doc = json.loads(blobs[CONTRACT_FILE])
+    row = data_md_row("`contract.json`")
+    for keys, got in [(CONTRACT_KEYS, doc), (POLICY_KEYS, doc["policy"]), (TIMING_KEYS, doc["timing"])]:
+        assert set(got) == keys, set(got) ^ keys
+        named_in(row, keys)
+    named_in(row, ["control_hz", "frame_stack", "obs_size", "frame_size", "frame"])
+    assert (doc["format"], doc["version"]) == (manifest["format"], manifest["format_version"])
+    for section, name in [("weights", WEIGHTS_FILE), ("golden", GOLDEN_FILE)]:
+        assert doc[section]["file"] == name and doc[section]["sha256"] == manifest["files"][name]["sha256"]
+    assert doc["weights"]["bytes"] == len(blobs[WEIGHTS_FILE])
+    assert (doc["onnx"] is None) == (ONNX_FILE not in blobs)
+    if doc["onnx"] is not None:
+        assert doc["onnx"]["sha256"] == manifest["files"][ONNX_FILE]["sha256"] and doc["onnx"]["file"] == ONNX_FILE
+    assert doc["runtime"]["control_hz"] == 20.0 and doc["policy"]["trained_control_hz"] == World().control_hz
+    obs = REAL_OBS_SIZE                                   # the robot's 13: joints, ball, goal
+    assert doc["runtime"]["obs_size"] == doc["policy"]["obs_size"] == doc["observation"]["frame_size"] == obs
+    assert len(doc["observation"]["frame"]) == obs
+    assert doc["policy"]["kind"] == kind and doc["policy"]["members"] == members
+    assert all(shape[0] == members for shape in doc["weights"]["tensors"].values())
+    assert doc["source"]["members"] == list(range(members))
+    assert (doc["policy"]["state"] is None) == (kind == "framestack")
+    assert doc["world"] == json.loads(json.dumps(to_dict(World())))
+    t = doc["timing"]
+    assert t["model"] == json.loads(json.dumps(to_dict(World().timing)))
+    assert t["centre"] == json.loads(json.dumps(to_dict(World().timing.centre())))
+    assert t["sha256"] == record_hash(t["model"], t["ranges"]) and t["ideal"] == World().timing.ideal
+    assert t["randomized_per_episode"] == (max(World().timing.spreads()) > 0)
+
+
 def test_export_one_member_and_framestack(tmp_path):
     params = random_params(LSTM, seed=5, members=3)
     export(params, LSTM, World(), str(tmp_path / "m1"), member=1, control_hz=60)
