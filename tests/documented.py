@@ -151,3 +151,67 @@ def named_in(row: str, keys) -> None:
     """Every key is named in the DATA.md row, in backquotes."""
     missing = sorted(k for k in keys if f"`{k}`" not in row)
     assert not missing, f"not documented in docs/DATA.md: {missing}"
+
+
+SESSION_KEYS = {"episodes", "goals", "mode", "overruns", "skipped", "faults", "ends", "policy_hash", "control_hz",
+                "wall_s", "out"}
+SIM_SESSION_KEYS = {"metrics", "violations", "violations_true_limits", "max_speed_fraction", "commands", "landings",
+                    "latency_ms", "sim_s", "realtime_factor", "policy", "self_test_error", "distribution", "seed",
+                    "timing", "throw_delays_s"}
+SESSION_TIMING_KEYS = {"station", "source", "trained", "trained_ranges", "trained_sha256", "within_trained",
+                       "outside", "override"}
+
+
+def check_sim_session(out_dir: str, printed: dict, policy_dir: str, goals, seed: int) -> None:
+    """`ttmjx robot run --station sim --out DIR`'s session.json is the summary printed, with the keys
+    DATA.md ("The session's summary") names, and they mean it: recomputed from the episode logs
+    (ends, metrics, landings, latencies), the export (hash, rate, timing record) and each other."""
+    from deploy.robot.episode_log import load_episode
+    from deploy.robot.exported import WEIGHTS_FILE, read_contract
+    from deploy.robot.modes import Mode
+    from ttmjx.world import files, record
+    from ttmjx.world.goals import goal_metrics
+    saved = json.load(open(os.path.join(out_dir, "session.json")))
+    assert saved == json.loads(json.dumps(files.json_safe(printed)))
+    assert set(saved) == SESSION_KEYS | SIM_SESSION_KEYS, set(saved) ^ (SESSION_KEYS | SIM_SESSION_KEYS)
+    n = saved["episodes"]
+    assert saved["goals"] == len(goals) and 0 < n <= len(goals) and saved["out"] == out_dir
+    assert saved["mode"] in {m.value for m in Mode} and (saved["mode"] == "idle") <= (n == len(goals))
+    assert saved["overruns"] >= 0 and saved["skipped"] >= 0 and saved["skipped"] <= saved["faults"].get("skipped", 0)
+    assert all(isinstance(v, int) and v > 0 for v in saved["faults"].values())
+    eps = [load_episode(out_dir, f"episode_{i:04d}") for i in range(n)]
+    assert saved["ends"] == [e.meta["end"] for e in eps]
+    assert all(e == "done" or e.startswith("hold: ") for e in saved["ends"])
+    assert saved["policy_hash"] == "sha256:" + files.sha256_file(os.path.join(policy_dir, WEIGHTS_FILE))
+    contract = read_contract(policy_dir)
+    assert saved["control_hz"] == contract["runtime"]["control_hz"]
+    tr = record.concat([e.traj for e in eps])
+    want = goal_metrics(tr.landing, tr.goal, tr.hit, tr.on_opponent)
+    assert set(saved["metrics"]) == GOAL_METRICS | {"on_opponent"}
+    for k, v in want.items():                               # NaN (none landed) is written as null
+        assert saved["metrics"][k] == (None if v != v else pytest.approx(v)), k
+    assert saved["metrics"]["on_opponent"] == pytest.approx(float(np.mean(tr.on_opponent)))
+    np.testing.assert_allclose(np.array(saved["landings"], np.float64), tr.landing, rtol=0, atol=1e-6)
+    lat = np.concatenate([e.extras["t_sent"] - e.extras["t_grid"] for e in eps]) * 1e3
+    lat = lat[np.isfinite(lat)]
+    assert saved["latency_ms"] == pytest.approx({"p50": np.percentile(lat, 50), "p99": np.percentile(lat, 99),
+                                                 "max": lat.max()})
+    assert set(saved["violations"]) == set(saved["violations_true_limits"])
+    assert all(v == 0 for v in saved["violations_true_limits"].values()) and 0 < saved["max_speed_fraction"] <= 1
+    assert saved["commands"] >= sum(int(e.extras["executed"].sum()) for e in eps)
+    assert saved["realtime_factor"] == pytest.approx(saved["sim_s"] / saved["wall_s"])
+    assert saved["policy"] == policy_dir and saved["seed"] == seed and 0 <= saved["self_test_error"] <= 1e-5
+    assert saved["distribution"] == contract["world"]["throws"]["name"]
+    t = saved["timing"]
+    assert set(t) == SESSION_TIMING_KEYS, set(t) ^ SESSION_TIMING_KEYS
+    rec = contract["timing"]
+    assert (t["trained"], t["trained_ranges"], t["trained_sha256"]) == (rec["model"], rec["ranges"], rec["sha256"])
+    assert t["source"] == "export" and t["station"] == rec["model"]      # default: the trained model, drawn per throw
+    assert t["within_trained"] == (not t["outside"]) and (not t["override"] or t["outside"])
+    assert t["within_trained"] and not t["override"]                     # the trained timing is inside
+    assert len(saved["throw_delays_s"]) == n
+    names = ("tracker_latency_s", "joint_latency_s", "action_delay_s")
+    for delays in saved["throw_delays_s"]:
+        for name, d in zip(names, delays):
+            lo, hi = rec["ranges"][name]
+            assert lo - 1e-9 <= d <= hi + 1e-9, (name, d)

@@ -24,7 +24,7 @@ from deploy.robot import (
     load_export,
 )
 from deploy.sim.export import export
-from documented import check_sweep
+from documented import check_sim_session, check_sweep
 from deploy.sim.station import SimClock, SimStation, complete_episode, play, run_sim
 from models import PolicyConfig, identity_normalizer, init_params
 from training.data import relabel
@@ -128,6 +128,7 @@ def test_robot_run_on_the_sim_station_end_to_end(tiny_export, tmp_path):
                 "joint_out_of_range", "joint_time", "joint_nonfinite", "joint_mismatch", "robot_fault"}
     assert not latching & set(out["faults"])
     assert json.load(open(os.path.join(logs, "session.json")))["episodes"] == 2
+    check_sim_session(logs, out, tiny_export, goals, 1)        # every field as docs/DATA.md says
     contract = load_export(tiny_export)[1]
     trajs = []
     for i in range(2):
