@@ -14,7 +14,7 @@ from eval.evaluate import training_evaluation, training_evaluation_seeds
 from models.normalizer import identity_normalizer
 from models.policy import init_ensemble, make_policy
 from training import budget, checkpoint, runconfig
-from training.seeds import SeedRuns, check_one_batch, pick_seed, seed_configs
+from training.seeds import SeedRuns, check_one_batch, pick_seed, seed_configs, seed_run_dirs
 from training.trainer import Run
 from ttmjx.world import thrower
 from ttmjx.world.backends import Backend
@@ -67,6 +67,12 @@ def test_seed_k_of_a_batch_is_seed_k_alone(demo_dir, tmp_path, capsys):
     assert [c.seed for c in cfgs] == [0, 1] and cfgs[1].run_dir == os.path.join(str(tmp_path / "batch"), "seed1")
     out = SeedRuns(cfgs, training_evaluation_seeds(base), progress=False, parent=base.run_dir).run(max_iterations=3)
     assert out["iteration"] == 3 and out["seeds"] == [0, 1]
+    # seeds.json as docs/DATA.md says: the seeds in order and each one's run directory, relative
+    seeds_json = json.load(open(os.path.join(base.run_dir, "seeds.json")))
+    assert seeds_json == {"seeds": [0, 1], "run_dirs": ["seed0", "seed1"]}
+    for s, d in zip(seeds_json["seeds"], seeds_json["run_dirs"]):
+        assert json.load(open(os.path.join(base.run_dir, d, "config.json")))["seed"] == s
+    assert seed_run_dirs(base.run_dir) == [c.run_dir for c in cfgs]
     alone_cfg = dataclasses.replace(base, seed=1, run_dir=str(tmp_path / "alone1"))
     Run(alone_cfg, evaluate=training_evaluation(alone_cfg), progress=False).run(max_iterations=3)
     batched, alone = rows(cfgs[1].run_dir), rows(alone_cfg.run_dir)
