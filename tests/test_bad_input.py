@@ -591,6 +591,58 @@ def test_a_stale_bound_below_the_sensors_sample_age_is_refused_before_any_episod
     assert json.loads((out / "session.json").read_text())["episodes"] == 1
 
 
+def free_ports(kind, n: int) -> list[int]:
+    """n ports of `kind` (socket.SOCK_DGRAM or SOCK_STREAM) nothing listens on now."""
+    import socket
+    socks = [socket.socket(socket.AF_INET, kind) for _ in range(n)]
+    for s in socks:
+        s.bind(("127.0.0.1", 0))
+    ports = [s.getsockname()[1] for s in socks]
+    for s in socks:
+        s.close()
+    return ports
+
+
+def test_a_stale_bound_below_the_cells_sample_age_is_refused_before_the_drivers_open(tiny_export, tmp_path):
+    """--stale-ms on the cell station was not checked at all: a bound below the age its samples
+    reach by design (the ball's: one tracker period plus the trained latency and jitter; the
+    joints': one EGM cycle) would hold before any episode. Exit 2 naming the flag, the value, the
+    age and the bound, before a driver opens and with nothing written; at the bound the command
+    goes on to the drivers (here none answers: one line naming the drive, pymodbus's own line
+    no longer before it). A fresh process for the export trained under the cell's timing."""
+    import socket
+
+    import jax
+
+    from deploy.sim.export import export
+    from models import PolicyConfig, identity_normalizer, init_params
+    from ttmjx.world.config import CELL_TRAINING, World
+    pcfg = PolicyConfig(hidden=8, layers=1)
+    params = init_params(jax.random.key(0), pcfg, identity_normalizer(13))
+    cell_timed = export(params, pcfg, dataclasses.replace(World(), timing=CELL_TRAINING), str(tmp_path / "ex"),
+                        control_hz=20, source="random-init")
+    egm, tracker = free_ports(socket.SOCK_DGRAM, 2)
+    (gantry,) = free_ports(socket.SOCK_STREAM, 1)
+    toml = tmp_path / "cell.toml"
+    toml.write_text(f"[egm]\nport = {egm}\n[gantry]\nport = {gantry}\n[tracker]\nport = {tracker}\n")
+    out = tmp_path / "logs"
+    t = CELL_TRAINING
+    ball_ms = 1e3 * (1 / t.tracker_hz + t.tracker_latency_s + t.delay_spread_s + t.jitter_s)    # 29 ms
+    argv = ["robot", "run", "--policy", cell_timed, "--station", "cell", "--config", toml, "--goals", "five",
+            "--out", out]
+    one_line_error(run(*argv, "--stale-ms", "28"), 2, "ttmjx robot run: error:", "--stale-ms 28",
+                   f"the cell's ball samples are up to {ball_ms:.3g} ms old", "125 Hz", "latency up to 20 ms",
+                   f"expected at least {ball_ms:.3g} ms")
+    # an export trained seeing the ball every physics step: the joints' EGM cycle bounds it
+    one_line_error_here(argv[:2] + ["--policy", tiny_export] + argv[4:] + ["--stale-ms", "3"], 2,
+                        "ttmjx robot run: error:", "--stale-ms 3", "the cell's joint samples are up to 4 ms old",
+                        "one EGM cycle at 250 Hz", "expected at least 4 ms")
+    assert not out.exists()
+    done = run(*argv, "--stale-ms", f"{ball_ms:.3g}")
+    one_line_error(done, 2, "ttmjx robot run: error:", "gantry: cannot connect", f"127.0.0.1:{gantry}")
+    assert done.stderr.strip().count("\n") == 0, done.stderr
+
+
 def test_baseline_on_the_cpu_states_the_expected_time_before_it_starts(tmp_path, capsys, monkeypatch):
     """`ttmjx baseline ppo --scale tiny` ran ~77 minutes on 2 CPU cores saying nothing of it: one
     stderr line before the first cell, with the steps, the time and the GPU (the training

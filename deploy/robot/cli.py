@@ -25,7 +25,7 @@ from deploy.robot.exported import read_contract
 from deploy.robot.goals import session_goals
 from deploy.robot.hardware import MonotonicClock
 from deploy.robot.policy_bench import benchmark
-from deploy.robot.runner import Runner, RunnerConfig
+from deploy.robot.runner import Runner, RunnerConfig, stale_bound_error
 from deploy.robot.session import StationHooks, run_session
 from deploy.robot.timing_check import timing_line, trained_timing
 from ttmjx import commandline
@@ -206,7 +206,12 @@ def robot_run(a: RobotRunArgs, sim_station: Callable[..., dict] | None = None) -
     goals = session_goals(a.goals, a.n, a.seed)
     config = RunnerConfig(stale_s=a.stale_ms / 1000.0)
     if a.station == "cell":
-        trained_timing(read_contract(a.policy), a.policy)   # an export without a timing record is refused
+        trained = trained_timing(read_contract(a.policy), a.policy)["timing"]   # none: refused
+        from deploy.robot.drivers.config import sample_ages       # no driver packages needed
+        ages, why = sample_ages(trained)
+        error = stale_bound_error(config.stale_s, ages, "the cell's", why)
+        if error:
+            raise ValueError(error)
     # --out: a new directory, or this command's own session: resumed if unfinished (play)
     out = play(a.station, a.policy, goals, a.out, config, seed=a.seed, distribution=a.distribution,
                timing=a.timing, allow_untrained=a.allow_untrained_timing, realtime=a.realtime,

@@ -161,6 +161,22 @@ def _missing(dim: int) -> Interpolated:
     return Interpolated(nan, np.zeros(dim), np.nan, np.nan, nan, nan)
 
 
+def stale_bound_error(stale_s: float, ages, whose: str = "this station's",
+                      why: str | dict = "by design (a sample period plus the latency)") -> str | None:
+    """The one-line refusal of a stale bound (`--stale-ms`) below the oldest that a station's
+    newest sample gets by design (ages: [(seconds, 'joint' | 'ball')]; why: the reason, or one
+    per kind; the runner would hold before any episode played), or None when the bound covers
+    every age."""
+    if not ages:
+        return None
+    age, what = max(ages)
+    if stale_s >= age - 1e-9:
+        return None
+    why = why[what] if isinstance(why, dict) else why
+    return (f"--stale-ms {stale_s * 1e3:g}: {whose} {what} samples are up to {age * 1e3:.3g} ms old {why}, so the "
+            f"runner would hold before any episode played; expected at least {math.ceil(age * 1e4 - 1e-6) / 10:g} ms")
+
+
 class Runner:
     """Runs episodes of `policy` on `robot` with balls from `tracker`, paced by `clock`."""
 
@@ -174,13 +190,9 @@ class Runner:
         self.contract, self.config = contract, config
         ages = [(age, what) for what, sensor in (("joint", robot), ("ball", tracker))
                 for age in [getattr(sensor, "max_sample_age_s", None)] if isinstance(age, (int, float))]
-        if ages:                                                # where the station states them
-            age, what = max(ages)
-            if not config.stale_s >= age - 1e-9:
-                raise ValueError(f"--stale-ms {config.stale_s * 1e3:g}: this station's {what} samples are up to "
-                                 f"{age * 1e3:.3g} ms old by design (a sample period plus the latency), so the "
-                                 f"runner would hold before any episode played; expected at least "
-                                 f"{math.ceil(age * 1e4 - 1e-6) / 10:g} ms")
+        error = stale_bound_error(config.stale_s, ages)         # where the station states them
+        if error:
+            raise ValueError(error)
         self.policy_hash = policy_hash or getattr(policy, "policy_hash", None) or "unknown"
         self.limits = limits_from_contract(contract)
         self.true_speed = np.asarray(contract.max_speed, np.float64)

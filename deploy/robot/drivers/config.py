@@ -12,6 +12,24 @@ import socket
 import tomllib
 
 MAX_STALE_S = 0.25          # s, the longest stale limit of a part (deploy/robot/drivers/cell.py)
+EGM_CYCLE_S = 0.004         # s, the controller's EGM message period (250 Hz; docs/ROBOT.md)
+
+
+def sample_ages(trained) -> tuple[list[tuple[float, str]], dict]:
+    """([(seconds, 'joint' | 'ball')], {kind: why}): the oldest the cell's newest sample gets
+    when it runs as designed, and why. Joints: one EGM cycle (stamped at receipt; the gantry is
+    read at the arm's stamp, deploy/robot/drivers/cell.py). Ball: one tracker period plus the top
+    of the latency and jitter the export was trained under (`trained`: its contract's timing
+    model, a Timing), the timing the cell must keep for the policy; none where it was trained
+    seeing the ball every physics step (no tracker rate)."""
+    ages = [(EGM_CYCLE_S, "joint")]
+    why = {"joint": f"(one EGM cycle at {1 / EGM_CYCLE_S:g} Hz, stamped at receipt)"}
+    if trained.tracker_hz:
+        latency = trained.tracker_latency_s + trained.spreads()[0]
+        ages.append((1.0 / trained.tracker_hz + latency + trained.jitter_s, "ball"))
+        why["ball"] = (f"when its tracker runs as the export was trained ({trained.tracker_hz:g} Hz, latency up to "
+                       f"{latency * 1e3:.3g} ms, jitter up to {trained.jitter_s * 1e3:.3g} ms)")
+    return ages, why
 
 
 @dataclasses.dataclass(frozen=True)

@@ -30,6 +30,7 @@ those addresses in the cell config. `ttmjx robot serve` implements exactly this 
 from __future__ import annotations
 
 import collections
+import logging
 import threading
 import time
 
@@ -71,7 +72,13 @@ class ModbusGantry:
         self.cfg, self.regs, self.clock = cfg, cfg.registers, clock
         self.faults = faults if faults is not None else FaultLog()
         self.client = ModbusTcpClient(cfg.host, port=cfg.port, timeout=cfg.timeout_s, retries=0)
-        if not self.client.connect():
+        quiet = logging.getLogger("pymodbus.logging")       # its own line would precede ours
+        level, quiet.level = quiet.level, logging.CRITICAL
+        try:
+            connected = self.client.connect()
+        finally:
+            quiet.setLevel(level)
+        if not connected:
             self.client.close()
             raise ValueError(f"gantry: cannot connect to the Modbus TCP drive at {cfg.host}:{cfg.port} "
                              f"(unreachable host, or nothing listening)")
