@@ -68,6 +68,7 @@ def scripted():
     return rcfg, jax.tree.map(np.asarray, (t0, final, reward, done, terms, tgt, joints))
 
 
+@pytest.mark.slow
 def test_reward_terms_on_a_scripted_hit(scripted):
     rcfg, (t0, final, reward, done, terms, tgt, joints) = scripted
     ev = final.events
@@ -401,6 +402,7 @@ def test_sac_q_networks_are_the_policy_size():
     assert widths == {cfg.run.policy.hidden}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", agents.BRAX_METHODS)   # QT-Opt's: tests/test_qtopt.py
 def test_trains_evaluates_and_exports(method, tmp_path, monkeypatch):
     from brax.training import acting

@@ -16,6 +16,9 @@ from training.baselines.env import GoalEnv
 from training.runconfig import tiny
 
 WORLD = tiny().world
+# Every test here trains (and compiles) brax's and this project's RL loops: ~1,600 s of a worker's
+# time with empty caches, the run with `-m slow` (pyproject.toml; docs/BENCHMARKS.md, "Ninth pass").
+pytestmark = pytest.mark.slow
 
 
 # -- PPO, SAC and ES with their state outside brax's call (ppo.py, sac.py, es.py, resumable.py) --

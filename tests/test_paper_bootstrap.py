@@ -114,6 +114,7 @@ def test_bad_sizes_are_refused_with_their_numbers():
         bp.Procedure(final=10).check(False)
 
 
+@pytest.mark.slow
 def test_the_stages_run_through_the_trainer(tmp_path):
     """The whole procedure at toy sizes from the shipped ES weights (no ES is trained here): the
     shift and expand stages are one trainer run resumed, each with practice rounds; the exported
@@ -155,6 +156,7 @@ def test_cli_refuses_a_rebuild_too_small_for_es(tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_a_rebuild_resumes_in_its_out_directory_and_nothing_else_is_overwritten(tmp_path):
     """`--rebuild` keeps what it built in OUT/bootstrap/ when it is cut short (docs/DATA.md): the
     same command accepts an OUT holding only that, and still refuses an OUT with anything else."""
@@ -225,6 +227,7 @@ def test_cli_demos_paper_writes_the_two_maps(tmp_path, capsys):
     assert w > 1.2 * h                                              # two maps side by side
 
 
+@pytest.mark.slow
 def test_es_from_scratch_chains_the_contact_and_return_phases(tmp_path):
     """`--rebuild all`'s ES stage at toy sizes (below what Procedure.check accepts): the return
     phase starts from the contact phase's weights, both are written, and the result loads as

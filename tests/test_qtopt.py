@@ -124,6 +124,7 @@ def final_state(run_dir: str, cfg):
                             agents.state_json(cfg))
 
 
+@pytest.mark.slow
 def test_a_tiny_budget_trains_two_seeds_and_scores_them_in_process(table):
     """Both seeds' results: a curve point at 0, one after the first epoch, one at the budget
     (environment steps as the loop counted them), the final evaluation on the tiny run's 32
@@ -170,6 +171,7 @@ def test_a_tiny_budget_trains_two_seeds_and_scores_them_in_process(table):
     assert np.asarray(tr.hit[0], bool).tolist() == results[1]["landings"]["hit"]
 
 
+@pytest.mark.slow
 def test_eval_and_export_refuse_a_qtopt_run_with_one_line(table):
     out, _ = table
     run_dir = os.path.join(out, "runs", "qtopt-seed0")
@@ -179,6 +181,7 @@ def test_eval_and_export_refuse_a_qtopt_run_with_one_line(table):
     assert not os.path.exists(os.path.join(out, "..", "export"))
 
 
+@pytest.mark.slow
 def test_a_stopped_run_resumes_to_the_uninterrupted_result(table, tmp_path, monkeypatch):
     """The same two seeds in another directory, stopped right after both saved their first
     epoch's checkpoint, then the same call again: it resumes from that checkpoint (one epoch

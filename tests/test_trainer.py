@@ -187,6 +187,7 @@ def test_resume_after_interruption_is_bit_exact(trained, demo_dir, tmp_path):
     assert [r["iteration"] for r in rows] == list(range(6))  # no duplicated or lost rows
 
 
+@pytest.mark.slow
 def test_sigterm_saves_a_checkpoint_and_the_run_resumes(demo_dir, tmp_path):
     run_dir = tmp_path / "sig"
     cmd = [sys.executable, "-m", "ttmjx", "train", "--preset", "tiny", "--run-dir", str(run_dir),
@@ -208,6 +209,7 @@ def test_sigterm_saves_a_checkpoint_and_the_run_resumes(demo_dir, tmp_path):
     assert res["iteration"] == saved + 1
 
 
+@pytest.mark.slow
 def test_lfp_and_gcsl_are_configurations(demo_dir, tmp_path):
     lfp = runconfig.preset("lfp")
     assert not lfp.practice and lfp.demos > 0
@@ -248,6 +250,7 @@ def test_eval_cli_reports_json_metrics(trained, capsys):
     assert bad.returncode == 2 and "does not exist" in bad.stderr
 
 
+@pytest.mark.slow
 def test_robot_practice_closes_the_loop(trained, demo_dir, tmp_path, capsys):
     """play -> log -> relabel -> train -> export -> play: the trained run is exported, plays
     episodes on the simulated station through the robot runner, and a resumed run trains on
@@ -286,6 +289,7 @@ def test_robot_practice_closes_the_loop(trained, demo_dir, tmp_path, capsys):
     assert int(again.counters.trajectories) == int(after.counters.trajectories) + cfg.episodes_per_ssp
 
 
+@pytest.mark.slow
 def test_gcsl_starts_from_zero_demonstrations(tmp_path):
     """GCSL = practice from nothing: the untrained policy's own hits are all the data."""
     cfg = dataclasses.replace(runconfig.tiny(), demos=0, pretrain_steps=0, run_dir=str(tmp_path / "gcsl"))
@@ -296,6 +300,7 @@ def test_gcsl_starts_from_zero_demonstrations(tmp_path):
 
 
 # -- faults: damaged checkpoints, non-finite training, non-finite data ----------------------
+@pytest.mark.slow
 def test_a_damaged_newest_checkpoint_is_skipped_and_the_resume_ends_where_it_would_have(trained, demo_dir, tmp_path):
     full_dir, _ = trained
     cfg = tiny(demo_dir, tmp_path / "damaged")
@@ -317,6 +322,7 @@ def test_a_damaged_newest_checkpoint_is_skipped_and_the_resume_ends_where_it_wou
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
+@pytest.mark.slow
 def test_non_finite_training_stops_without_saving(demo_dir, tmp_path):
     cfg = tiny(demo_dir, tmp_path / "nan")
     cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, learning_rate=float("inf")))
@@ -338,6 +344,7 @@ def test_non_finite_data_is_refused_with_the_field_and_step(demo_dir, tmp_path):
     assert not os.path.exists(tmp_path / "bad" / "trajectories.npz")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fail_at", [2, 5, 9])
 def test_a_full_disk_at_any_write_loses_nothing(trained, demo_dir, tmp_path, monkeypatch, fail_at):
     """Every write (metrics, config, checksums) goes through ttmjx.world.files; the disk fills at
@@ -366,6 +373,7 @@ def test_a_full_disk_at_any_write_loses_nothing(trained, demo_dir, tmp_path, mon
     assert [r["iteration"] for r in rows] == list(range(6))
 
 
+@pytest.mark.slow
 def test_kill_9_at_random_moments_then_the_same_command_resumes_to_the_same_result(trained, demo_dir, tmp_path):
     """SIGKILL (no handler can run) at random moments of `ttmjx train`: each rerun of the same
     command continues, and the end equals the uninterrupted run bit for bit."""
