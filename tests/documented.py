@@ -215,3 +215,85 @@ def check_sim_session(out_dir: str, printed: dict, policy_dir: str, goals, seed:
         for name, d in zip(names, delays):
             lo, hi = rec["ranges"][name]
             assert lo - 1e-9 <= d <= hi + 1e-9, (name, d)
+
+
+def data_md_section(heading: str) -> str:
+    """The text of docs/DATA.md's section `heading` (e.g. '## Robot-runner episode logs') up to
+    the next heading of its level or above."""
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs", "DATA.md")
+    text = open(path).read()
+    level = heading.split(" ")[0]
+    start = text.index(heading + "\n")
+    ends = [text.find("\n" + "#" * k + " ", start + 1) for k in range(1, len(level) + 1)]
+    ends = [e for e in ends if e >= 0]
+    return text[start:min(ends) if ends else len(text)]
+
+
+EPISODE_META_KEYS = {"schema_version", "n", "horizon", "source", "policy_hash", "episode", "goal", "t0", "end",
+                     "ticks", "executed", "faults", "max_latency_s", "events_detected", "contract", "runner",
+                     "transitions"}
+SIM_EPISODE_META_KEYS = {"station", "events"}
+EVENT_KEYS = {"t_launch", "launch_pos", "launch_vel", "launch_spin", "aim", "hit", "t_hit", "bounce_own", "net",
+              "landed", "landing", "t_land", "on_opponent", "fell", "done", "t_done"}
+
+
+def check_sim_episode_meta(out_dir: str, i: int, session: dict, goals, contract, runner_config) -> dict:
+    """Episode i's `episode_<i:04d>.meta.json` of a `ttmjx robot run --station sim --out DIR`
+    session holds the keys DATA.md ("Robot-runner episode logs") names, and each means it:
+    recomputed from the episode's record and deploy arrays, the session's summary, the goals,
+    the export's contract and the runner's settings. Returns the metadata."""
+    import dataclasses
+
+    from deploy.robot.contract import contract_to_dict
+    from deploy.robot.episode_log import load_episode
+    from deploy.robot.safety import FAULTS
+    from ttmjx.world import record
+    ep = load_episode(out_dir, f"episode_{i:04d}")
+    meta, tr, x = ep.meta, ep.traj, ep.extras
+    assert set(meta) == EPISODE_META_KEYS | SIM_EPISODE_META_KEYS, set(meta) ^ (EPISODE_META_KEYS | SIM_EPISODE_META_KEYS)
+    named_in(data_md_section("## Robot-runner episode logs"), set(meta) | EVENT_KEYS)
+    T, dt = contract.horizon, 1.0 / contract.control_hz
+    assert meta["schema_version"] == record.SCHEMA_VERSION and meta["n"] == 1 == tr.size
+    assert meta["horizon"] == T == tr.obs.shape[1]
+    assert meta["source"] == "deploy.robot.runner" and meta["policy_hash"] == session["policy_hash"]
+    assert meta["episode"] == i
+    np.testing.assert_array_equal(np.float32(meta["goal"]), np.float32(goals[i]))
+    np.testing.assert_array_equal(np.float32(meta["goal"]), tr.goal[0])
+    valid = tr.valid[0]
+    assert meta["ticks"] == int(valid.sum()) and meta["end"] == session["ends"][i]
+    assert (meta["end"] == "done") <= (meta["ticks"] == T)
+    np.testing.assert_allclose(x["t_grid"][valid], meta["t0"] + np.arange(T)[valid] * dt, rtol=0, atol=1e-9)
+    assert meta["executed"] == int(x["executed"].sum()) and 0 < meta["executed"] <= meta["ticks"]
+    assert set(meta["faults"]) == set(FAULTS)
+    for name, bit in FAULTS.items():
+        assert meta["faults"][name] == int(np.sum((x["faults"] & bit) != 0)), name
+    lat = x["t_sent"] - x["t_grid"]
+    assert meta["max_latency_s"] == pytest.approx(float(np.nanmax(lat)), abs=1e-12) and meta["max_latency_s"] >= 0
+    assert meta["contract"] == json.loads(json.dumps(contract_to_dict(contract)))
+    assert meta["runner"] == json.loads(json.dumps(dataclasses.asdict(runner_config)))
+    tt = meta["transitions"]
+    assert all(len(t) == 4 for t in tt) and [t[1:3] for t in tt][0] == ["armed", "running"]
+    assert tt[-1][2] == ("idle" if meta["end"] == "done" else "hold") and all(a[2] == b[1] for a, b in zip(tt, tt[1:]))
+    assert [t[0] for t in tt] == sorted(t[0] for t in tt) and tt[0][0] >= meta["t0"]
+    # the simulated station's events: they completed the record
+    assert meta["station"] == "sim" and meta["events_detected"] is True
+    ev = meta["events"]
+    assert set(ev) == EVENT_KEYS, set(ev) ^ EVENT_KEYS
+    for k in ("launch_pos", "launch_vel", "launch_spin", "aim"):
+        np.testing.assert_allclose(np.array(ev[k], np.float64), getattr(tr, k)[0], rtol=0, atol=1e-6, err_msg=k)
+    assert ev["t_launch"] <= meta["t0"] and ev["hit"] == bool(tr.hit[0]) and ev["net"] == bool(tr.net[0])
+    assert ev["bounce_own"] == bool(tr.bounce_own[0])
+    assert (ev["t_hit"] is not None) == ev["hit"]
+    if ev["hit"]:
+        assert tr.hit_step[0] == min(T - 1, int(np.floor((ev["t_hit"] - meta["t0"]) / dt + 1e-9)))
+    else:
+        assert tr.hit_step[0] == -1
+    assert ev["done"] and (ev["t_done"] is not None) and ev["fell"] == (not ev["landed"])
+    assert (ev["t_land"] is not None) == ev["landed"] and (not ev["landed"] or ev["t_land"] == ev["t_done"])
+    if ev["hit"] and ev["landed"]:
+        np.testing.assert_allclose(np.array(ev["landing"], np.float64), tr.landing[0], rtol=0, atol=1e-6)
+        assert ev["t_hit"] < ev["t_land"]
+    else:
+        assert np.isnan(tr.landing[0]).all()
+    assert bool(tr.on_opponent[0]) == (ev["hit"] and ev["landed"] and ev["on_opponent"])
+    return meta

@@ -127,8 +127,10 @@ def test_robot_runner_logs_on_the_simulated_station_recompute_every_landing_from
     """`ttmjx robot run --station sim` of the cell-timing run's export at its trained timing: each
     episode's landing (the station's events) is recomputed from the logged true ball within 1 cm;
     the tracker's samples are the truth at their sample times; what the policy saw is not."""
+    from deploy.robot import RunnerConfig, load_export
     from deploy.robot.episode_log import load_episode
     from deploy.sim.station import run_sim
+    from documented import check_sim_episode_meta
     from ttmjx import cli
     export = str(tmp_path / "export")
     with contextlib.redirect_stdout(io.StringIO()):
@@ -137,7 +139,9 @@ def test_robot_runner_logs_on_the_simulated_station_recompute_every_landing_from
     out = run_sim(export, GOALS[:3], logs, seed=1)
     assert out["timing"]["station"]["tracker_hz"] == 125.0 and out["episodes"] == 3
     landed = 0
+    contract = load_export(export)[1]
     for i in range(3):
+        check_sim_episode_meta(logs, i, out, GOALS[:3], contract, RunnerConfig())   # its metadata, as DATA.md says
         ep = load_episode(logs, f"episode_{i:04d}")
         x, ev = ep.extras, ep.meta["events"]
         t, xyz = x["true_ball_t"], x["true_ball_xyz"]
