@@ -297,3 +297,137 @@ def check_sim_episode_meta(out_dir: str, i: int, session: dict, goals, contract,
         assert np.isnan(tr.landing[0]).all()
     assert bool(tr.on_opponent[0]) == (ev["hit"] and ev["landed"] and ev["on_opponent"])
     return meta
+
+
+TABLE_ENTRIES = ["curves.png", "landings", "results", "runs", "summary.json", "table.md"]
+RESULT_KEYS = {"variant", "seed", "run_dir", "final", "curve", "landings", "wall_s", "attempts", "config"}
+TABLE_METRICS = [("mean_dist", "mean distance (m)", 1.0, 2), ("mean_dist_landed", "distance, every landing (m)", 1.0, 2),
+                 ("within_30cm", "<= 30 cm (%)", 100.0, 1), ("within_20cm", "<= 20 cm (%)", 100.0, 1),
+                 ("hit_rate", "hit rate (%)", 100.0, 1), ("on_table_rate", "on table (%)", 100.0, 1)]
+# Two-sided 95% quantiles of Student's t by degrees of freedom (any statistics table).
+STUDENT_T975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571}
+
+
+def check_table_result(out: str, path: str, table: Table = Table()) -> dict:
+    """One `results/<variant>-seed<s>.json` of an experiment table holds the keys DATA.md
+    ("Experiment tables") names and they mean it: the cell, its run, its configuration, the
+    final metrics recomputed from its landings, a curve that ends at the budget. Returns it."""
+    from ttmjx.world.goals import goal_metrics
+    r = json.load(open(path))
+    name = os.path.basename(path)[:-len(".json")]
+    assert set(r) - {"seeds_in_program"} == RESULT_KEYS, set(r) ^ RESULT_KEYS
+    assert name == f"{r['variant']}-seed{r['seed']}" and r["run_dir"] == os.path.join(out, "runs", name)
+    assert os.path.isdir(r["run_dir"])
+    assert json.load(open(os.path.join(r["run_dir"], "wall_time.json"))) == {"wall_s": r["wall_s"],
+                                                                           "attempts": r["attempts"]}
+    assert r["wall_s"] > 0 and r["attempts"] >= 1 and r.get("seeds_in_program", 2) >= 2
+    rl = "method" in r["config"]
+    run = r["config"]["run"] if rl else r["config"]
+    assert run["seed"] == r["seed"] and run["run_dir"] == r["run_dir"]
+    assert (r["config"]["method"] == r["variant"]) if rl else set(r["config"]) >= {"world", "policy", "train", "demos"}
+    lands, g = r["landings"], run["eval_goals"]
+    assert set(lands) == {"goal", "landing", "hit", "on_opponent"} and all(len(v) == g for v in lands.values())
+    goal = np.array(lands["goal"], np.float64)
+    landing = np.array([[np.nan if v is None else v for v in p] for p in lands["landing"]], np.float64)
+    hit, on = np.array(lands["hit"], bool), np.array(lands["on_opponent"], bool)
+    assert np.all(np.isnan(landing).all(1) | np.isfinite(landing).all(1)) and np.all(hit | np.isnan(landing).all(1))
+    assert np.all((goal[:, 0] >= 0) & (goal[:, 0] <= table.half_length) & (np.abs(goal[:, 1]) <= table.half_width))
+    assert np.all(hit[on] & np.isfinite(landing[on]).all(1))
+    x, y = landing[on, 0], landing[on, 1]                       # a first bounce on the opponent's half
+    assert np.all((x >= -0.02) & (x <= table.half_length + 0.02) & (np.abs(y) <= table.half_width + 0.02))
+    assert set(r["final"]) == GOAL_METRICS and r["final"]["goals"] == g
+    want = goal_metrics(landing, goal, hit, on)                  # from the rounded landings: 0.1 mm
+    for k, v in want.items():
+        assert (r["final"][k] is None) == (v != v), k
+        if v == v:
+            assert r["final"][k] == pytest.approx(v, abs=2e-4), k
+    curve = r["curve"]
+    assert curve and [p["trajectories"] for p in curve] == sorted(p["trajectories"] for p in curve)
+    assert curve[-1]["trajectories"] == run["total_trajectories"]
+    for p in curve:
+        assert set(p) >= {"trajectories", "updates", "cache_size"} | GOAL_METRICS and p["goals"] == g
+        assert p["within_20cm"] <= p["within_30cm"] <= p["on_table_rate"] <= p["hit_rate"] <= 1
+        if rl:
+            assert set(p) == {"trajectories", "updates", "cache_size", "env_steps"} | GOAL_METRICS, set(p)
+            assert p["env_steps"] == pytest.approx(p["trajectories"] * run["world"]["episode_s"] * run["world"]["control_hz"])
+            assert p["updates"] == p["cache_size"] == 0
+        else:
+            extra = set(p) - {"trajectories", "updates", "cache_size"} - GOAL_METRICS
+            members = {f"member{i}_30cm" for i in range(run["train"]["members"])} if run["train"]["members"] > 1 else set()
+            assert extra == {f"{k}_30cm" for k in GOAL_REGIONS} | members, extra
+            assert 0 <= p["cache_size"] <= run["train"]["capacity"] and p["updates"] >= 0
+    return r
+
+
+def check_table_out(out: str, printed: dict, variants: list[str], scale: str, command: str) -> dict:
+    """`ttmjx ablate NAME --out DIR --json` or `ttmjx baseline METHODS --out DIR --json`: the
+    directory holds what DATA.md ("Experiment tables") lists; every result as check_table_result;
+    summary.json is the printed object without its last keys, each key meaning what DATA.md says
+    (the intervals recomputed from the results with a statistics table's t); table.md shows those
+    numbers. variants: the ablation's variants or the baseline's methods, in order; command: the
+    command line that wrote it ('' through the Python API). Returns summary.json."""
+    import math
+    assert sorted(n for n in os.listdir(out) if not n.startswith(".")) == TABLE_ENTRIES
+    names = sorted(os.listdir(os.path.join(out, "results")))
+    results = [check_table_result(out, os.path.join(out, "results", n)) for n in names]
+    saved = json.load(open(os.path.join(out, "summary.json")))
+    assert {k: v for k, v in printed.items() if k not in ("cells_run", "stopped_by_signal", "unfinished")} == saved
+    assert printed["stopped_by_signal"] == 0 and "unfinished" not in printed
+    baseline = saved["ablation"] == "baselines"
+    header = {"ablation", "scale", "command", "title", "subtitle", "variants", "outputs"}
+    assert set(saved) == header | (set() if baseline else {"bootstrap", "variants_overrides"}), set(saved)
+    named_in(data_md_section("## Experiment tables (`ttmjx ablate NAME --out DIR`, `ttmjx baseline METHODS --out DIR`)"),
+             set(saved) | set(printed) | RESULT_KEYS | {"seeds_in_program"} | {"mean", "half", "n", "values"})
+    assert saved["scale"] == scale and saved["command"] == command
+    configs = [r["config"].get("run", r["config"]) for r in results]
+    budgets = sorted({c["total_trajectories"] for c in configs})
+    assert f"{'/'.join(f'{t:,}' for t in budgets)} trajectories per cell" in saved["subtitle"] and "seed 1234" in saved["subtitle"]
+    if baseline:
+        assert saved["title"] == f"baselines ({scale})"
+    else:
+        sources = sorted({c["demo_source"] for c in configs if c["demos"] > 0})
+        none = any(c["demos"] == 0 for c in configs)
+        want = ", ".join(sources) + (" (and none: GCSL)" if sources and none else "none (GCSL)" if none else "")
+        assert saved["bootstrap"] == want and saved["title"] == f"ablate {saved['ablation']} ({scale}; bootstrap: {want})"
+        assert set(saved["variants_overrides"]) == set(variants)
+    order = list(variants) + sorted({r["variant"] for r in results} - set(variants))
+    assert [v["variant"] for v in saved["variants"]] == order
+    rows = []
+    for v in saved["variants"]:
+        mine = sorted((r for r in results if r["variant"] == v["variant"]), key=lambda r: r["seed"])
+        assert set(v) == {"variant", "seeds", "metrics", "wall_s"}
+        assert v["seeds"] == [r["seed"] for r in mine] and v["wall_s"] == [r["wall_s"] for r in mine]
+        assert set(v["metrics"]) == {k for k, *_ in TABLE_METRICS if any(k in r["final"] for r in mine)}
+        cells = {}
+        for k, _, scale_, digits in TABLE_METRICS:
+            if k not in v["metrics"]:
+                continue
+            m = v["metrics"][k]
+            values = [r["final"][k] for r in mine]
+            got = np.array([x for x in values if x is not None], np.float64)
+            assert set(m) == {"mean", "half", "n", "values"} and m["values"] == values and m["n"] == len(got)
+            assert m["mean"] == (pytest.approx(got.mean()) if len(got) else None)
+            half = (STUDENT_T975[len(got) - 1] * got.std(ddof=1) / math.sqrt(len(got))) if len(got) > 1 else None
+            assert m["half"] == (None if half is None else pytest.approx(half, rel=1e-3, abs=1e-12)), (k, m, half)
+            cells[k] = ("-" if m["mean"] is None else f"{m['mean'] * scale_:.{digits}f}"
+                        + ("" if m["half"] is None else f" +- {m['half'] * scale_:.{digits}f}"))
+        rows.append((v["variant"], len(mine), cells))
+    shown = [c for c in TABLE_METRICS if any(c[0] in v["metrics"] for v in saved["variants"])]
+    lines = open(os.path.join(out, "table.md")).read().splitlines()
+    assert lines[0] == f"### {saved['title']}" and lines[2] == saved["subtitle"]
+    assert lines[4] == "| variant | seeds | " + " | ".join(c[1] for c in shown) + " |"
+    assert lines[5] == "| --- | --- |" + " --- |" * len(shown) and lines[6 + len(rows)] == ""
+    for (name, n, cells), line in zip(rows, lines[6:6 + len(rows)]):
+        want = [cells.get(k, "-") for k, *_ in shown]
+        assert line == f"| {name} | {n} | " + " | ".join(want) + " |", (line, want)
+    outputs = saved["outputs"]
+    finished = [v["variant"] for v in saved["variants"] if v["seeds"]]
+    assert outputs == {"table": os.path.join(out, "table.md"), "curves": os.path.join(out, "curves.png"),
+                       "landings": {v: os.path.join(out, "landings", f"{v}.png") for v in finished},
+                       "summary": os.path.join(out, "summary.json")}
+    assert sorted(os.listdir(os.path.join(out, "landings"))) == sorted(f"{v}.png" for v in finished)
+    for png in [outputs["curves"], *outputs["landings"].values()]:
+        with open(png, "rb") as f:
+            assert f.read(8) == b"\x89PNG\r\n\x1a\n", png
+    assert printed["cells_run"] == [f"{r['variant']}-seed{r['seed']}" for r in sorted(results, key=lambda r: (r["seed"], order.index(r["variant"])))]
+    return saved
