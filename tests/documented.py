@@ -349,7 +349,8 @@ def check_table_result(out: str, path: str, table: Table = Table()) -> dict:
         assert p["within_20cm"] <= p["within_30cm"] <= p["on_table_rate"] <= p["hit_rate"] <= 1
         if rl:
             assert set(p) == {"trajectories", "updates", "cache_size", "env_steps"} | GOAL_METRICS, set(p)
-            assert p["env_steps"] == pytest.approx(p["trajectories"] * run["world"]["episode_s"] * run["world"]["control_hz"])
+            horizon = run["world"]["episode_s"] * run["world"]["control_hz"]
+            assert p["env_steps"] == pytest.approx(p["trajectories"] * horizon)
             assert p["updates"] == p["cache_size"] == 0
         else:
             extra = set(p) - {"trajectories", "updates", "cache_size"} - GOAL_METRICS
@@ -381,7 +382,8 @@ def check_table_out(out: str, printed: dict, variants: list[str], scale: str, co
     assert saved["scale"] == scale and saved["command"] == command
     configs = [r["config"].get("run", r["config"]) for r in results]
     budgets = sorted({c["total_trajectories"] for c in configs})
-    assert f"{'/'.join(f'{t:,}' for t in budgets)} trajectories per cell" in saved["subtitle"] and "seed 1234" in saved["subtitle"]
+    assert f"{'/'.join(f'{t:,}' for t in budgets)} trajectories per cell" in saved["subtitle"]
+    assert "seed 1234" in saved["subtitle"]
     if baseline:
         assert saved["title"] == f"baselines ({scale})"
     else:
@@ -429,5 +431,6 @@ def check_table_out(out: str, printed: dict, variants: list[str], scale: str, co
     for png in [outputs["curves"], *outputs["landings"].values()]:
         with open(png, "rb") as f:
             assert f.read(8) == b"\x89PNG\r\n\x1a\n", png
-    assert printed["cells_run"] == [f"{r['variant']}-seed{r['seed']}" for r in sorted(results, key=lambda r: (r["seed"], order.index(r["variant"])))]
+    seed_major = sorted(results, key=lambda r: (r["seed"], order.index(r["variant"])))
+    assert printed["cells_run"] == [f"{r['variant']}-seed{r['seed']}" for r in seed_major]
     return saved

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from documented import check_table_out
 from eval import baselines, table_cells
 from training.baselines import agents, qtopt, resumable
 from training.baselines.config import QTOptConfig
@@ -134,6 +135,7 @@ def test_a_tiny_budget_trains_two_seeds_and_scores_them_in_process(table):
     the draws of table_cells.FINAL_EVAL_SEED. No GoalsEye checkpoint is written."""
     out, summary = table
     assert summary["cells_run"] == ["qtopt-seed0", "qtopt-seed1"] and "qtopt" in open(summary["outputs"]["table"]).read()
+    check_table_out(out, summary, list(baselines.METHODS), "tiny", "")     # every output as docs/DATA.md says
     results = [json.load(open(os.path.join(out, "results", f"qtopt-seed{s}.json"))) for s in (0, 1)]
     for seed, r in enumerate(results):
         assert r["config"]["method"] == "qtopt" and r["config"]["run"]["total_trajectories"] == BUDGET
