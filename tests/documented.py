@@ -237,11 +237,13 @@ EVENT_KEYS = {"t_launch", "launch_pos", "launch_vel", "launch_spin", "aim", "hit
               "landed", "landing", "t_land", "on_opponent", "fell", "done", "t_done"}
 
 
-def check_sim_episode_meta(out_dir: str, i: int, session: dict, goals, contract, runner_config) -> dict:
-    """Episode i's `episode_<i:04d>.meta.json` of a `ttmjx robot run --station sim --out DIR`
+def check_episode_meta(out_dir: str, i: int, session: dict, goals, contract, runner_config,
+                       station: str = "sim") -> dict:
+    """Episode i's `episode_<i:04d>.meta.json` of a `ttmjx robot run --station sim|fake --out DIR`
     session holds the keys DATA.md ("Robot-runner episode logs") names, and each means it:
     recomputed from the episode's record and deploy arrays, the session's summary, the goals,
-    the export's contract and the runner's settings. Returns the metadata."""
+    the contract played and the runner's settings; the simulated station's events against the
+    record they completed, the fake station's record left without outcomes. Returns the metadata."""
     import dataclasses
 
     from deploy.robot.contract import contract_to_dict
@@ -250,8 +252,9 @@ def check_sim_episode_meta(out_dir: str, i: int, session: dict, goals, contract,
     from ttmjx.world import record
     ep = load_episode(out_dir, f"episode_{i:04d}")
     meta, tr, x = ep.meta, ep.traj, ep.extras
-    assert set(meta) == EPISODE_META_KEYS | SIM_EPISODE_META_KEYS, set(meta) ^ (EPISODE_META_KEYS | SIM_EPISODE_META_KEYS)
-    named_in(data_md_section("## Robot-runner episode logs"), set(meta) | EVENT_KEYS)
+    keys = EPISODE_META_KEYS | (SIM_EPISODE_META_KEYS if station == "sim" else set())
+    assert set(meta) == keys, set(meta) ^ keys
+    named_in(data_md_section("## Robot-runner episode logs"), keys | EVENT_KEYS)
     T, dt = contract.horizon, 1.0 / contract.control_hz
     assert meta["schema_version"] == record.SCHEMA_VERSION and meta["n"] == 1 == tr.size
     assert meta["horizon"] == T == tr.obs.shape[1]
@@ -275,6 +278,12 @@ def check_sim_episode_meta(out_dir: str, i: int, session: dict, goals, contract,
     assert all(len(t) == 4 for t in tt) and [t[1:3] for t in tt][0] == ["armed", "running"]
     assert tt[-1][2] == ("idle" if meta["end"] == "done" else "hold") and all(a[2] == b[1] for a, b in zip(tt, tt[1:]))
     assert [t[0] for t in tt] == sorted(t[0] for t in tt) and tt[0][0] >= meta["t0"]
+    if station == "fake":                 # no events: the outcome fields the runner cannot see
+        assert meta["events_detected"] is False
+        assert not tr.hit[0] and tr.hit_step[0] == -1 and np.isnan(tr.landing[0]).all()
+        assert not (tr.on_opponent[0] or tr.bounce_own[0] or tr.net[0])
+        assert np.isnan(tr.launch_spin[0]).all() and np.isnan(tr.aim[0]).all()
+        return meta
     # the simulated station's events: they completed the record
     assert meta["station"] == "sim" and meta["events_detected"] is True
     ev = meta["events"]

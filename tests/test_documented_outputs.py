@@ -1,6 +1,8 @@
 """Outputs against docs/DATA.md under the settings the docs describe: a run's metrics.jsonl (the
-session's recorded tiny run), a dataset's truth arrays. (eval --out under the cell's timing:
-tests/test_true_tracks.py; at ideal timing: tests/test_eval_goals.py.)"""
+session's recorded tiny run), a dataset's truth arrays, a dry run's robot episode logs. (eval --out
+under the cell's timing: tests/test_true_tracks.py; at ideal timing: tests/test_eval_goals.py; the
+simulated station's logs: tests/test_station.py, tests/test_true_tracks.py; experiment tables:
+tests/test_table_outputs.py.)"""
 import json
 
 import numpy as np
@@ -35,3 +37,30 @@ def test_a_dataset_keeps_its_truth_beside_the_record_and_refuses_a_clash(tmp_pat
     for bad in ({"obs": np.zeros((b, t, 3))}, {"true_ball_pos": np.zeros((b + 1, t, 3))}):
         with pytest.raises(record.RecordError, match="extra array"):
             record.save(str(tmp_path / "e"), traj, {"source": "test"}, extra=bad)
+
+
+def test_a_dry_run_episode_log_holds_the_documented_metadata(tmp_path):
+    """`ttmjx robot run --station fake --goals five --out DIR --json` (no export: the dry run's
+    ball follower) under the default runner settings: session.json is the printed summary and
+    every episode's meta.json holds DATA.md's keys, recomputed from its arrays, the contract
+    the dry run plays and RunnerConfig's defaults; no events, so no outcomes in the record."""
+    import contextlib
+    import dataclasses
+    import io
+
+    from deploy.robot import Contract, RunnerConfig
+    from deploy.robot.cli import DRY_RUN_FRAMES, DRY_RUN_HZ
+    from documented import SESSION_KEYS, check_episode_meta
+    from ttmjx.entry import main
+    from ttmjx.world.goals import five_goals
+    out = str(tmp_path / "logs")
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        main(["robot", "run", "--station", "fake", "--goals", "five", "--out", out, "--json"])
+    session = json.loads(printed.getvalue().strip().splitlines()[-1])
+    assert json.loads((tmp_path / "logs" / "session.json").read_text()) == session
+    assert set(session) == SESSION_KEYS and session["episodes"] == session["goals"] == 5
+    contract = dataclasses.replace(Contract(), control_hz=DRY_RUN_HZ, frame_stack=DRY_RUN_FRAMES)
+    for i in range(5):
+        meta = check_episode_meta(out, i, session, five_goals(1)[0], contract, RunnerConfig(), station="fake")
+        assert meta["end"] == "done"

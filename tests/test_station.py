@@ -25,7 +25,7 @@ from deploy.robot import (
     load_export,
 )
 from deploy.sim.export import export
-from documented import check_sim_episode_meta, check_sim_session, check_sweep
+from documented import check_episode_meta, check_sim_session, check_sweep
 from deploy.sim.station import SimClock, SimStation, complete_episode, play, run_sim
 from models import PolicyConfig, identity_normalizer, init_params
 from training.data import relabel
@@ -132,7 +132,7 @@ def test_robot_run_on_the_sim_station_end_to_end(tiny_export, tmp_path):
     check_sim_session(logs, out, tiny_export, goals, 1)        # every field as docs/DATA.md says
     contract = load_export(tiny_export)[1]
     for i in range(2):                                          # each episode's metadata, key by key
-        check_sim_episode_meta(logs, i, out, goals, contract, RunnerConfig())
+        check_episode_meta(logs, i, out, goals, contract, RunnerConfig())
     trajs = []
     for i in range(2):
         traj, meta = record.load(logs, f"episode_{i:04d}")        # the one data format

@@ -130,7 +130,7 @@ def test_robot_runner_logs_on_the_simulated_station_recompute_every_landing_from
     from deploy.robot import RunnerConfig, load_export
     from deploy.robot.episode_log import load_episode
     from deploy.sim.station import run_sim
-    from documented import check_sim_episode_meta
+    from documented import check_episode_meta
     from ttmjx import cli
     export = str(tmp_path / "export")
     with contextlib.redirect_stdout(io.StringIO()):
@@ -141,7 +141,7 @@ def test_robot_runner_logs_on_the_simulated_station_recompute_every_landing_from
     landed = 0
     contract = load_export(export)[1]
     for i in range(3):
-        check_sim_episode_meta(logs, i, out, GOALS[:3], contract, RunnerConfig())   # its metadata, as DATA.md says
+        check_episode_meta(logs, i, out, GOALS[:3], contract, RunnerConfig())   # its metadata, as DATA.md says
         ep = load_episode(logs, f"episode_{i:04d}")
         x, ev = ep.extras, ep.meta["events"]
         t, xyz = x["true_ball_t"], x["true_ball_xyz"]
