@@ -71,9 +71,10 @@ FIRST = ("test_baselines_loops.py", "test_trainer.py", "test_bad_input.py", "tes
 # whose decorators are edited elsewhere, marked here by node id (a parametrized case by its id;
 # a test's name alone marks every case). The README's command runs the rest; CI (.ci/run) runs
 # both sets. Marked with @pytest.mark.slow in their own modules: test_baselines_loops (all),
-# test_baselines, test_trainer, test_qtopt, test_paper_bootstrap.
+# test_baselines, test_trainer, test_qtopt, test_paper_bootstrap, test_timing, test_cli.
 SLOW_ELSEWHERE = (
     "test_seeds.py::test_seed_k_of_a_batch_is_seed_k_alone",
+    "test_seeds.py::test_the_training_benchmark_times_every_piece_of_a_batched_round",
     "test_sharding.py::test_one_device_is_the_mesh_of_one_and_computes_the_recorded_numbers",
     "test_sharding.py::test_four_devices_reach_the_one_device_result",
     "test_sharding.py::test_members_and_windows_are_split_and_the_pool_stays_put",

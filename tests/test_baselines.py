@@ -345,6 +345,7 @@ def test_sac_buffer_inserts_each_seed_as_brax_and_rolls_only_when_needed():
     assert _top_level_conds(insert, stacked, jnp.stack([batch(0)] * 2)) == 1
 
 
+@pytest.mark.slow
 def test_seeds_that_do_not_fit_the_device_train_in_groups_that_do(monkeypatch):
     """The seeds of a method train as one program where their stacked epoch fits in 90% of the
     device's memory (XLA's memory analysis of the compiled epoch), else in groups that fit, one

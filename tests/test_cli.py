@@ -108,6 +108,7 @@ def no_opengl() -> str:
     return ""
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(bool(no_opengl()), reason=no_opengl())
 def test_render_writes_an_animated_gif(tmp_path):
     path = str(tmp_path / "throws.gif")

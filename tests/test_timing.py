@@ -124,6 +124,7 @@ def test_a_robot_run_is_reproducible_by_seed(tmp_path):
             np.testing.assert_array_equal(za[key], zb[key], err_msg=f"{name}:{key}")
 
 
+@pytest.mark.slow
 def test_both_backends_sense_and_act_under_the_same_timing():
     """The timing model is backend-independent: MJX and MuJoCo C, the same throws, open-loop
     commands and drawn timing (latencies randomized, jitter on), give the same sensed frames

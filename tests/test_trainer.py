@@ -229,6 +229,7 @@ def test_resume_refuses_a_different_config(trained, demo_dir):
         Run(cfg, progress=False).run()
 
 
+@pytest.mark.slow
 def test_eval_cli_reports_json_metrics(trained, capsys):
     """`ttmjx eval`'s JSON line. The two evaluations run the command line in this process
     (ttmjx.cli.main: the command's own parsing, output and exit; a failure raises SystemExit),
