@@ -11,10 +11,12 @@ directory under the ablation's output directory, reduced to a small JSON result 
     OUT/table.md, curves.png, landings/<variant>.png, summary.json
 
 Cells are ordered seed-major (every variant of seed 0, then seed 1, ...) for --plan and --cells.
-The unfinished seeds of a variant train together as one program on one device (training/seeds.py:
-the seed is a vmapped axis), and so do variants that differ only in their demonstrations with the
-same schedule (demos d10/d100/d1000 at full scale); the other programs run one after another in
-the same process. Each cell keeps its own run directory and result, so it is the same experiment
+The unfinished seeds of a variant train together as one program (training/seeds.py: the lane
+is a vmapped axis, laid over every local device or --devices of them), and so do variants that
+differ only in the settings a lane carries as data (practice on or off, learning rate, moving
+average: the practice ablation's goalseye and lfp-equal-updates) or in their demonstrations with
+the same schedule (demos d10/d100/d1000 at full scale); the other programs run one after another
+in the same process. Each cell keeps its own run directory and result, so it is the same experiment
 as when it ran alone.
 """
 from __future__ import annotations
@@ -309,12 +311,14 @@ def variant_config(name: str, variant: str, scale: str, seed: int, run_dir: str,
 
 
 def plan(name: str, scale: str, seeds: int, out: str, spec: str | None = None,
-         trajectories: int | None = None, settings: tuple = ()) -> list[table_cells.Cell]:
+         trajectories: int | None = None, settings: tuple = (), devices: int | None = None) -> list[table_cells.Cell]:
     """The selected cells with their configurations, checked before anything is written: every
-    variant config valid, every finished result computed with the config asked for now."""
+    variant config valid, every finished result computed with the config asked for now.
+    `devices`: the devices each program's lanes are laid over (None: every local device)."""
     return table_cells.planned_cells(out, select(name, cell_order(name, seeds), spec),
-                                     lambda v, seed, run_dir: variant_config(name, v, scale, seed, run_dir,
-                                                                             trajectories, settings))
+                                     lambda v, seed, run_dir: dataclasses.replace(
+                                         variant_config(name, v, scale, seed, run_dir, trajectories, settings),
+                                         devices=devices))
 
 
 def status(out: str, name: str, seeds: int) -> list[str]:
@@ -335,10 +339,13 @@ def status(out: str, name: str, seeds: int) -> list[str]:
 # -- running and reporting ---------------------------------------------------------------------
 def run(name: str, scale: str, seeds: int, out: str, spec: str | None = None, trajectories: int | None = None,
         progress: bool = True, trainer: table_cells.Trainer = table_cells.goalseye, command: str = "",
-        settings: tuple = ()) -> dict:
+        settings: tuple = (), devices: int | None = None) -> dict:
     """Train the selected cells that are not finished, then rebuild the outputs. The summary has
-    'stopped_by_signal' set when a signal cut a cell short (its run resumes next time)."""
-    cells = plan(name, scale, seeds, out, spec, trajectories, settings)
+    'stopped_by_signal' set when a signal cut a cell short (its run resumes next time). The cells
+    that one program can train (training.seeds.program_key: the seeds of a variant, and variants
+    that differ only in the lane knobs or their demonstrations) train together, their lanes laid
+    over `devices` devices (None: all)."""
+    cells = plan(name, scale, seeds, out, spec, trajectories, settings, devices)
     for c in cells:
         if c.config.practice and practice_iterations(c.config) == 0:
             log(f"[ablate] note: {c.name} practises nothing: its {c.config.total_trajectories} trajectories do not "

@@ -77,7 +77,8 @@ def check_result_matches(path: str, cell: Cell) -> None:
     """ValueError if the finished result at `path` was computed with another configuration (a
     skipped cell must be the cell this command asks for)."""
     saved, mine = load_result(path).get("config", {}), config_json(cell.config)
-    diff = sorted(k for k in set(saved) | set(mine) if k != "run_dir" and saved.get(k) != mine.get(k))
+    # the run directory and the devices (where it ran) do not change what a cell computes
+    diff = sorted(k for k in set(saved) | set(mine) if k not in ("run_dir", "devices") and saved.get(k) != mine.get(k))
     if diff:
         raise ValueError(f"{path} holds a result computed with a different config (fields {diff}); "
                          f"delete it or choose another --out")

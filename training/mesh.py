@@ -25,12 +25,19 @@ from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec as P
 
 from training.runconfig import RunConfig
 
-MEMBER, BATCH = "member", "batch"
+MEMBER, BATCH, LANE = "member", "batch", "lane"
 
 
 class Layout(NamedTuple):
-    """The mesh of a run and the shardings of its parts."""
+    """The mesh of a run and the shardings of its parts. `free`: the code of one lane inside a
+    program over lanes (training.seeds), which places nothing itself: the lanes' mesh does."""
     mesh: Mesh
+    free: bool = False
+
+    @property
+    def member_axis(self) -> str | None:
+        """The mesh axis the vmapped members map to (None inside a lane)."""
+        return None if self.free else MEMBER
 
     def sharding(self, *spec) -> NamedSharding:
         """NamedSharding of PartitionSpec(*spec) on this mesh."""
@@ -55,11 +62,11 @@ class Layout(NamedTuple):
     def constrain_batch(self, tree):
         """Split the leading [B] axis of a member's windows over `batch`. Use inside
         `jax.vmap(..., spmd_axis_name=MEMBER)`, which adds the member axis in front."""
-        return jax.lax.with_sharding_constraint(tree, self.sharding(BATCH))
+        return tree if self.free else jax.lax.with_sharding_constraint(tree, self.sharding(BATCH))
 
     def constrain_throws(self, tree):
         """Split the leading [M] axis over the devices (inside jit)."""
-        return jax.lax.with_sharding_constraint(tree, self.throws)
+        return tree if self.free else jax.lax.with_sharding_constraint(tree, self.throws)
 
     def put(self, tree, shardings):
         """`tree` placed as `shardings` (a pytree prefix of it). With several processes every
@@ -139,6 +146,24 @@ def make_layout(cfg: RunConfig) -> Layout:
 def single_device() -> Layout:
     """The mesh of one device (the default device): what a run on one device uses."""
     return _layout(1, 1)
+
+
+def lane_layout(lanes: int, devices: int | None = None) -> Layout:
+    """The layout of a program over `lanes` independent runs (training.seeds): a 1-D mesh
+    (`lane`) over `devices` devices (None: every local device, at most one per lane), each device
+    the lanes of its block; inside a lane nothing is placed (`free`). ValueError (one line, with
+    the counts) for more devices than there are."""
+    available = jax.local_device_count()
+    if devices is not None and devices > available:
+        raise ValueError(f"--devices {devices} but only {available} {jax.default_backend()} device(s) are available")
+    n = min(lanes, available) if devices is None else devices
+    return Layout(jax.make_mesh((n,), (LANE,), (AxisType.Auto,), devices=jax.local_devices()[:n]), free=True)
+
+
+def padded_lanes(lanes: int, devices: int) -> int:
+    """Lanes rounded up to a multiple of the devices: each device computes an equal block (the
+    extra lanes repeat the last real one and are never written)."""
+    return -(-lanes // devices) * devices
 
 
 def _layout(m: int, b: int) -> Layout:

@@ -21,13 +21,15 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import PartitionSpec
 
 from models.config import PolicyConfig
 from models.policy import make_policy, with_action_noise, with_integrating_action_noise
 from training.cache import Cache, add_episodes
 from training.config import TrainConfig
-from training.mesh import Layout, single_device
-from training.update import TrainState, acting_params, make_train_loop, state_sharding, train_loop_fn
+from training.mesh import LANE, Layout, single_device
+from training.update import (Knobs, TrainState, acting_params, knobs_of, lane_knobs, make_train_loop, state_sharding,
+                             train_loop_fn)
 from ttmjx.world import thrower
 from ttmjx.world.backends import Backend, backend_kind
 from ttmjx.world.config import Table, World
@@ -103,7 +105,7 @@ def round_keys(key):
 
 
 def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, throws: thrower.Throw,
-                   counted, table: Table, seeds: bool = False):
+                   counted, table: Table, seeds: bool = False, knobs: Knobs | None = None):
     """One round of Algorithm 1 -> (state, cache, loss [N], PracticeStats): goals, rollouts of the
     acting (moving-average) policies on `throws` [M], relabel + append, S updates.
 
@@ -112,7 +114,8 @@ def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, thro
     one compiled round (the rest are played and dropped).
 
     seeds=True: every argument and the `parts` carry a leading axis of independent runs (the
-    host round of several seeds; on MJX the whole round is vmapped instead)."""
+    host round of several seeds; on MJX the whole round is vmapped instead).
+    knobs: the lane's TrainConfig settings as data (training.update.Knobs); None: the config's."""
     over = jax.vmap if seeds else (lambda f: f)
     k_goal, k_roll, k_train = over(round_keys)(key)
     traj = parts.rollout(acting_params(state), k_roll, parts.place(throws), parts.place(parts.goals(k_goal)))
@@ -120,7 +123,7 @@ def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, thro
     members = traj.hit.shape[-1] // parts.block if parts.block else 1
     stats = over(lambda *a: practice_stats(*a, table, members))(jax.tree.map(jnp.asarray, traj), cache.count,
                                                                new.count, counted)
-    state, loss = parts.train(state, new, k_train)
+    state, loss = parts.train(state, new, k_train) if knobs is None else parts.train(state, new, k_train, knobs)
     return state, new, loss, stats
 
 
@@ -132,13 +135,23 @@ THROW_STREAM = 0x7E40   # fold-in tag that separates the throw keys from the per
 
 
 def over_seeds(fn, backend: str):
-    """fn(state, cache, key) of one run -> the same over a leading seed axis. On an accelerator a
-    vmap (one wider program). On MuJoCo C's CPU a loop over the seeds inside the program: the
-    updates already keep the cores busy, and XLA:CPU's batched matrix products were slower than
-    the seeds one after another (docs/BENCHMARKS.md)."""
+    """fn(state, cache, key, knobs) of one run -> the same over a leading lane axis. On an
+    accelerator a vmap (one wider program). On MuJoCo C's CPU a loop over the lanes inside the
+    program: the updates already keep the cores busy, and XLA:CPU's batched matrix products were
+    slower than the seeds one after another (docs/BENCHMARKS.md)."""
     if backend_kind(backend).traceable:
         return jax.vmap(fn)
-    return lambda state, cache, key: jax.lax.map(lambda a: fn(*a), (state, cache, key))
+    return lambda *args: jax.lax.map(lambda a: fn(*a), args)
+
+
+def over_lanes(fn, layout: Layout):
+    """jit of fn, a function of arrays that all carry the leading lane axis [L] (and return only
+    such arrays): on one device as it is; on a lane mesh of D devices each device computes its
+    block of L / D lanes (shard_map), with nothing exchanged between lanes."""
+    if layout.mesh.size == 1:
+        return jax.jit(fn)
+    lanes = PartitionSpec(LANE)
+    return jax.jit(jax.shard_map(fn, mesh=layout.mesh, in_specs=lanes, out_specs=lanes, check_vma=False))
 
 
 class Practice:
@@ -152,22 +165,27 @@ class Practice:
                              f"(every member practises an equal share)")
         self.world, self.tcfg, self.backend, self.episodes = world, tcfg, backend, episodes
         self.layout = layout or single_device()
-        # seeds=S: S independent runs in one program; every state, cache, key and throw carries a
-        # leading [S] axis, and each compiled piece is the one-run piece vmapped over it.
+        # seeds=L: L independent runs (lanes) in one program; every state, cache, key and throw
+        # carries a leading [L] axis, each compiled piece is the one-run piece vmapped over it,
+        # and a lane layout (training.mesh.lane_layout) gives each device a block of lanes.
         self.seeds = seeds
-        if seeds and self.layout.mesh.size > 1:
-            raise ValueError(f"{seeds} seeds in one program run on one device; got a mesh of {self.layout.mesh.size}")
-        over = jax.vmap if seeds else (lambda f: f)
+        if seeds and not self.layout.free:
+            raise ValueError(f"{seeds} lanes in one program need a lane layout (training.mesh.lane_layout)")
         self.train_loop, self._train_one = None, None
         if train_steps > 0:
             self._train_one = train_loop_fn(pcfg, tcfg, train_steps, self.layout)   # one run, pure
-            self.train_loop = (jax.jit(over_seeds(self._train_one, backend.name)) if seeds
+            self.train_loop = (self.lanes(over_seeds(self._train_one, backend.name)) if seeds
                                else make_train_loop(pcfg, tcfg, train_steps, self.layout))
-        self._sample_throws = jax.jit(over(lambda k: thrower.sample_throws(k, world, THROW_BLOCK * episodes)))
+        sample = lambda k: thrower.sample_throws(k, world, THROW_BLOCK * episodes)  # noqa: E731
+        self._sample_throws = self.lanes(jax.vmap(sample)) if seeds else jax.jit(sample)
         self._bank = (None, None)
         policy = practice_policy(pcfg, tcfg)
         pure = self._pure_parts(backend.rollout_fn(policy, members=tcfg.members)) if backend.kind.traceable else None
         self._round = self._compiled_round(pure) if pure else self._host_round(policy)
+
+    def lanes(self, fn):
+        """fn over the lanes, compiled, on the lane layout's devices (over_lanes)."""
+        return over_lanes(fn, self.layout)
 
     def _pure_parts(self, rollout) -> RoundParts:
         """Practice goals beyond the table by practice_goal_margin; kept episodes by practice_keep."""
@@ -185,9 +203,10 @@ class Practice:
         devices (`place`); the state stays split over members, the cache and the stats replicated."""
         lay = self.layout
         parts = pure._replace(rollout=lambda *a: lay.constrain_throws(pure.rollout(*a)))
+        if self.seeds:   # lanes: each device plays its block of lanes whole
+            return self.lanes(jax.vmap(lambda s, c, k, th, n, kn: practice_round(parts, s, c, k, th, n,
+                                                                                 self.world.table, knobs=kn)))
         out = (state_sharding(lay), lay.replicated, lay.replicated, lay.replicated)
-        if self.seeds:   # one device (checked in __init__): the seed axis needs no placement
-            return jax.jit(jax.vmap(lambda *a: practice_round(parts, *a, self.world.table)))
         return jax.jit(lambda *a: practice_round(parts, *a, self.world.table), out_shardings=out)
 
     def _host_round(self, policy):
@@ -197,10 +216,11 @@ class Practice:
         pure = self._pure_parts(None)
         if self.seeds:
             parts = pure._replace(
-                goals=jax.jit(jax.vmap(pure.goals)), append=jax.jit(jax.vmap(pure.append)), train=self.train,
+                goals=self.lanes(jax.vmap(pure.goals)), append=self.lanes(jax.vmap(pure.append)), train=self.train,
                 rollout=lambda p, k, th, g: backend.rollout_seeds(policy, p, k, th, g, members=members),
                 place=lambda tree: tree)
-            return lambda *a: practice_round(parts, *a, self.world.table, seeds=True)
+            return lambda s, c, k, th, n, kn: practice_round(parts, s, c, k, th, n, self.world.table, seeds=True,
+                                                             knobs=kn)
         parts = pure._replace(
             goals=jax.jit(pure.goals), append=jax.jit(pure.append, out_shardings=lay.replicated),
             rollout=lambda p, k, th, g: backend.rollout(policy, lay.local(p), k, th, g, members=members),
@@ -213,33 +233,47 @@ class Practice:
         block, i = divmod(int(it), THROW_BLOCK)
         if self._bank[0] != block:
             fold = jax.vmap(jax.random.fold_in, in_axes=(0, None)) if self.seeds else jax.random.fold_in
-            k = fold(fold(base_key, THROW_STREAM), block)
+            k = fold(fold(np.asarray(base_key), THROW_STREAM), block)
             self._bank = (block, self._sample_throws(k))
         m = self.episodes
         return jax.tree.map(lambda x: x[..., i * m:(i + 1) * m, :], self._bank[1])   # [(S,) M, 3 or 2]
 
-    def train(self, state: TrainState, cache: Cache, key):
-        """S training steps -> (state, mean loss per member [N])."""
+    def train(self, state: TrainState, cache: Cache, key, knobs: Knobs | None = None):
+        """S training steps -> (state, mean loss per member [N]); with lanes, knobs [L] (Knobs)
+        and every result [L, ...]."""
         if self.train_loop is None:
             return state, jnp.zeros((self.seeds, self.tcfg.members) if self.seeds else self.tcfg.members)
-        state, loss = self.train_loop(state, cache, key)
-        return state, loss.mean(-2)   # over the steps: [N], or [S, N] with seeds
+        if self.seeds:
+            state, loss = self.train_loop(state, cache, key, self.knobs if knobs is None else knobs)
+        else:
+            state, loss = self.train_loop(state, cache, key)
+        return state, loss.mean(-2)   # over the steps: [N], or [L, N] over lanes
 
-    def train_one(self, state: TrainState, cache: Cache, key):
-        """`train` of one run, uncompiled (inside the vmapped round of several seeds)."""
+    def train_one(self, state: TrainState, cache: Cache, key, knobs: Knobs | None = None):
+        """`train` of one lane, uncompiled (inside the vmapped round of several lanes)."""
         if self._train_one is None:
             return state, jnp.zeros(self.tcfg.members)
-        state, loss = self._train_one(state, cache, key)
+        state, loss = self._train_one(state, cache, key, knobs)
         return state, loss.mean(0)
 
+    @property
+    def knobs(self) -> Knobs:
+        """Every lane's knobs as this Practice's config has them ([L] arrays with lanes)."""
+        return lane_knobs([self.tcfg] * self.seeds) if self.seeds else knobs_of(self.tcfg)
+
     def iteration(self, state: TrainState, cache: Cache, key, throws: thrower.Throw | None = None,
-                  counted: int | None = None):
+                  counted=None, knobs: Knobs | None = None):
         """One iteration -> (state, cache, loss [N], PracticeStats or None). With `throws` [M]
         (`round_throws`) a practice round, of which the first `counted` episodes (None: all M)
-        join the pool; without, S updates only (pretraining, LFP). With seeds, every argument and
-        result has a leading [S] axis."""
+        join the pool; without, S updates only (pretraining, LFP). With lanes, every argument and
+        result has a leading [L] axis, `counted` is one count or [L] (0 for a lane that does not
+        practise: it plays the round and keeps nothing, so it trains exactly as a train-only
+        round), and `knobs` [L] are the lanes' settings (None: the config's)."""
         if throws is not None:
-            n = jnp.int32(self.episodes if counted is None else counted)
-            return self._round(state, cache, key, throws, jnp.full(self.seeds, n) if self.seeds else n)
-        state, loss = self.train(state, cache, (jax.vmap(round_keys) if self.seeds else round_keys)(key)[2])
+            n = self.episodes if counted is None else counted
+            if not self.seeds:
+                return self._round(state, cache, key, throws, jnp.int32(n))
+            n = jnp.asarray(np.broadcast_to(np.asarray(n, np.int32), (self.seeds,)))
+            return self._round(state, cache, key, throws, n, self.knobs if knobs is None else knobs)
+        state, loss = self.train(state, cache, (jax.vmap(round_keys) if self.seeds else round_keys)(key)[2], knobs)
         return state, cache, loss, None

@@ -1,13 +1,21 @@
-"""Several seeds of one configuration trained as one program: a batch of runs.
+"""Several runs trained as one program: a batch of lanes.
 
-A run is a function of (config, key); S runs that differ only in their seed (or, with the same
-schedule, in the demonstrations they start from: `program_key`) stack every array of
-their state (weights, optimizer states, moving averages, caches, keys, counters) on a leading
-[S] axis, and each compiled piece of training (the practice round, the update loop, the throw
-sampler, the evaluation rollout) is the one-run piece vmapped over that axis (training.practice
-with `seeds`, Backend.rollout_seeds). So seed k of a batch is the same experiment as seed k run
-alone: the same demonstrations, throws, goals, initial weights and random draws
-(tests/test_seeds.py compares them).
+A run is a function of (config, key); L runs (lanes) that differ only in their seed, in the
+settings an ablation varies as data (LANE_KNOBS: practice on or off, learning rate, moving
+average; training.update.Knobs) and, with the same schedule, in the demonstrations they start
+from (`program_key`), stack every array of their state (weights, optimizer states, moving
+averages, caches, keys, counters) on a leading [L] axis, and each compiled piece of training
+(the practice round, the update loop, the throw sampler, the evaluation rollout) is the one-run
+piece vmapped over that axis (training.practice with `seeds`, Backend.rollout_seeds). So lane k
+of a batch is the same experiment as that run alone: the same demonstrations, throws, goals,
+initial weights and random draws (tests/test_seeds.py, tests/test_lanes.py compare them). A lane
+that does not practise plays each round and keeps nothing, so it trains as LFP's train-only
+rounds do.
+
+The lanes are laid over the devices (training.mesh.lane_layout: a `lane` mesh axis, every
+local device unless cfg.devices says fewer): each device computes a block of lanes (shard_map),
+nothing passes between lanes, and a lane count that the devices do not divide is padded with
+copies of the last lane that are computed and never written.
 
 Each seed keeps its own run directory (config.json, metrics.jsonl, curves, Orbax checkpoints)
 written by the ordinary `Run` bookkeeping, so `ttmjx eval`, `ttmjx export` and a resume treat
@@ -16,8 +24,7 @@ a seed's directory like any run's. The batch's directory holds them and `seeds.j
     RUN/seeds.json        {"seeds": [s0, s1, ...], "run_dirs": ["seed<s0>", ...]}
     RUN/seed<s>/          one run per seed
 
-The batch runs on one device: its seeds are the parallel axis (an ensemble inside each seed is
-vmapped as usual).
+An ensemble inside each lane is vmapped as usual.
 """
 from __future__ import annotations
 
@@ -37,7 +44,7 @@ from training.runconfig import RunConfig, to_json
 from training.trainer import (SEEDS_FILE, NonFiniteError, Run, finite_flags, install_stop_signals, is_eval_iteration,
                               phase, practice_iterations, pretrain_iterations, restore_signals, round_episodes,
                               total_iterations, _now)
-from training.update import acting_params
+from training.update import acting_params, lane_knobs
 from ttmjx.world import files
 from ttmjx.world.backends import Backend, resolve_backend
 
@@ -47,8 +54,22 @@ EvaluateSeeds = Callable[..., list]
 # Fields in which the runs of one batch may differ: they change the runs' data (keys, starting
 # pools), not the program that trains them. `demos` and `demo_source` only where every run has
 # demonstrations and the same schedule (`program_key`): the demonstrations ablation's arms.
-PER_SEED = ("seed", "run_dir")
+PER_SEED = ("seed", "run_dir", "devices")
 PER_RUN_DATA = ("demos", "demo_source", "demo_dir")
+# Settings that are data of a lane (dotted config fields): the lanes of one program may differ in them.
+LANE_KNOBS = ("practice", "train.learning_rate", "train.ema_decay")
+
+
+def program_fields(cfg: RunConfig) -> dict:
+    """cfg's JSON without the per-lane fields (PER_SEED and LANE_KNOBS)."""
+    d = {k: v for k, v in to_json(cfg).items() if k not in PER_SEED}
+    for dotted in LANE_KNOBS:
+        head, _, rest = dotted.partition(".")
+        if rest:
+            d[head] = {k: v for k, v in d[head].items() if k != rest}
+        else:
+            d.pop(head, None)
+    return d
 
 
 def seed_configs(cfg: RunConfig, seeds: int) -> list[RunConfig]:
@@ -66,7 +87,7 @@ def seed_configs(cfg: RunConfig, seeds: int) -> list[RunConfig]:
 def program_key(cfg: RunConfig) -> str:
     """What one program must share: the configuration without the per-run fields, and the
     schedule (pretraining chunks, practice rounds). Runs with equal keys can train together."""
-    d = {k: v for k, v in to_json(cfg).items() if k not in PER_SEED + PER_RUN_DATA}
+    d = {k: v for k, v in program_fields(cfg).items() if k not in PER_RUN_DATA}
     d["has_demos"] = cfg.demos > 0
     d["schedule"] = (pretrain_iterations(cfg), practice_iterations(cfg))
     return json.dumps(d, sort_keys=True)
@@ -74,12 +95,13 @@ def program_key(cfg: RunConfig) -> str:
 
 def check_one_batch(cfgs: list[RunConfig]) -> None:
     """ValueError unless the configurations can be one program: they differ only in seed, run
-    directory and (with demonstrations and the same schedule) which demonstrations they start from."""
+    directory, the lane knobs (LANE_KNOBS) and (with demonstrations and the same schedule) which
+    demonstrations they start from."""
     if not cfgs:
         raise ValueError("a batch of seeds needs at least one configuration")
-    first, key = to_json(cfgs[0]), program_key(cfgs[0])
+    first, key = program_fields(cfgs[0]), program_key(cfgs[0])
     for c in cfgs[1:]:
-        diff = sorted(k for k, v in to_json(c).items() if k not in PER_SEED and first.get(k) != v)
+        diff = sorted(k for k, v in program_fields(c).items() if first.get(k) != v)
         if diff and (program_key(c) != key or set(diff) - set(PER_RUN_DATA)):
             raise ValueError(f"runs batched as seeds must share their configuration; {c.run_dir} differs in {diff}"
                              + (" (and in its schedule or in having demonstrations)"
@@ -99,28 +121,40 @@ def seed_slice(tree, s: int):
     return jax.tree.map(lambda x: x[s], tree)
 
 
+def padded(tree, lanes: int):
+    """A stacked tree [S, ...] with its last lane repeated up to `lanes` lanes."""
+    s = jax.tree.leaves(tree)[0].shape[0]
+    if lanes == s:
+        return tree
+    return jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], lanes - s, axis=0)]), tree)
+
+
 class SeedRuns:
-    """S runs of one configuration (differing in seed and run directory) trained together.
-    `evaluate` (params [S], backend, keys [S]) -> [metrics] is called at the evaluation
-    iterations; None skips evaluation. `parent` (optional): the batch's directory, where
-    seeds.json is written."""
+    """S runs of one program (differing in seed, run directory and the lane knobs) trained
+    together, over the lane layout's devices. `evaluate` (params [L], backend, keys [L]) ->
+    [metrics] is called at the evaluation iterations; None skips evaluation. `parent`
+    (optional): the batch's directory, where seeds.json is written."""
 
     def __init__(self, cfgs: list[RunConfig], evaluate: EvaluateSeeds | None = None, progress: bool = True,
                  log=print, parent: str | None = None):
         check_one_batch(cfgs)
         cfg = self.cfg = cfgs[0]
-        if cfg.devices not in (None, 1):
-            raise ValueError(f"--devices {cfg.devices}: a batch of seeds runs on one device (its seeds are the "
-                             f"parallel axis); leave --devices unset or train the seeds one at a time")
         if jax.process_count() > 1:
             raise ValueError("a batch of seeds runs in one process")
         self.seeds, self.evaluate, self.progress, self.log, self.parent = len(cfgs), evaluate, progress, log, parent
-        budget.check_fits(cfg, seeds=self.seeds)   # refused with the estimate before anything is compiled
-        layout = mesh.single_device()
+        self.layout = mesh.lane_layout(self.seeds, cfg.devices)
+        self.devices = self.layout.mesh.size
+        self.lanes = mesh.padded_lanes(self.seeds, self.devices)   # computed lanes, padding included
+        # refused with the estimate before anything is compiled: each device holds its block of lanes
+        budget.check_fits(cfg, seeds=self.lanes // self.devices)
         self.backend = Backend(cfg.world, resolve_backend(cfg.backend))
-        self.runs = [Run(c, None, progress, log, shared=(self.backend, layout)) for c in cfgs]
+        # each lane's Run makes and restores its own state on one device; `place` then lays the
+        # stacked lanes over the lane mesh
+        self.runs = [Run(c, None, progress, log, shared=(self.backend, mesh.single_device())) for c in cfgs]
+        self.cfgs = cfgs + [cfgs[-1]] * (self.lanes - self.seeds)
+        self.knobs = lane_knobs([c.train for c in self.cfgs])
         self.practice = Practice(cfg.world, cfg.policy, cfg.train, self.backend, cfg.episodes_per_ssp,
-                                 cfg.steps_between_ssp, layout, seeds=self.seeds)
+                                 cfg.steps_between_ssp, self.layout, seeds=self.lanes)
         self._stop = 0
 
     # -- state ----------------------------------------------------------------------------
@@ -136,7 +170,11 @@ class SeedRuns:
         its = [int(c.counters.iteration) for c in cks]
         low = min(its)
         cks = [c if i == low else r.rewind(low) for r, c, i in zip(self.runs, cks, its)]
-        return stacked(cks)
+        return self.place(padded(stacked(cks), self.lanes))
+
+    def place(self, tree):
+        """A stacked tree [L, ...] split over the lane layout's devices, a block of lanes each."""
+        return jax.device_put(tree, self.layout.sharding(mesh.LANE))
 
     def save(self, ck: Checkpointed):
         for s, r in enumerate(self.runs):
@@ -144,35 +182,40 @@ class SeedRuns:
 
     # -- one iteration ----------------------------------------------------------------------
     def step(self, ck: Checkpointed, it: int) -> tuple[Checkpointed, list[dict]]:
-        """Iteration `it` of every seed -> (state, one metrics row per seed)."""
+        """Iteration `it` of every lane -> (state, one metrics row per real lane). If any lane
+        practises, every lane plays the round; the others keep none of it (counted 0)."""
         cfg, t0 = self.cfg, _now()
-        practise = phase(cfg, it) == "practice"
-        base = np.asarray(ck.key)                                    # [S, 2], as each run's own key
+        practising = [phase(c, it) == "practice" for c in self.cfgs]
+        base = np.asarray(ck.key)                                    # [L, 2], as each run's own key
         fold = jax.vmap(jax.random.fold_in, in_axes=(0, None))
-        throws = self.practice.round_throws(base, it) if practise else None
-        new_traj = round_episodes(cfg, it)
-        state, cache, loss, stats = self.practice.iteration(ck.state, ck.cache, fold(base, it), throws, new_traj)
+        throws = self.practice.round_throws(base, it) if any(practising) else None
+        new_traj = np.array([round_episodes(c, it) for c in self.cfgs], np.int32)
+        state, cache, loss, stats = self.practice.iteration(ck.state, ck.cache, self.place(fold(base, it)), throws,
+                                                            new_traj, self.knobs)
         self.check_finite(state, loss, it)
         new_upd = cfg.steps_between_ssp if self.practice.train_loop else 0
         c = ck.counters
-        ck = Checkpointed(state, cache, ck.key, Counters(c.iteration + 1, c.trajectories + new_traj, c.updates + new_upd))
+        counters = self.place(Counters(c.iteration + 1, c.trajectories + new_traj, c.updates + new_upd))
+        ck = Checkpointed(state, cache, ck.key, counters)
         loss, sizes = np.asarray(loss), np.asarray(cache.size)
-        rows = [{"iteration": it, "phase": phase(cfg, it), "trajectories": int(ck.counters.trajectories[s]),
-                 "updates": int(ck.counters.updates[s]), "cache_size": int(sizes[s]), "loss": float(np.mean(loss[s])),
+        trajs, upds = np.asarray(counters.trajectories), np.asarray(counters.updates)
+        rows = [{"iteration": it, "phase": phase(self.cfgs[s], it), "trajectories": int(trajs[s]),
+                 "updates": int(upds[s]), "cache_size": int(sizes[s]), "loss": float(np.mean(loss[s])),
                  "seconds": _now() - t0, "seeds_in_program": self.seeds} for s in range(self.seeds)]
         if stats is not None:
             host = {k: np.asarray(v) for k, v in stats._asdict().items()}
             for s, row in enumerate(rows):
-                row.update(stats_row({k: v[s] for k, v in host.items()}))
+                if practising[s]:
+                    row.update(stats_row({k: v[s] for k, v in host.items()}))
         if self.evaluate is not None and is_eval_iteration(cfg, it):
-            metrics = self.evaluate(acting_params(state), self.backend, fold(base, 10**6 + it))
+            metrics = self.evaluate(acting_params(state), self.backend, fold(base, 10**6 + it))[:self.seeds]
             for row, m in zip(rows, metrics):
                 row.update({f"eval_{k}": v for k, v in m.items()})
         return ck, rows
 
     def check_finite(self, state, loss, it: int):
         """NonFiniteError naming the seeds whose loss or parameters are not finite."""
-        ok = np.asarray(jax.vmap(finite_flags)(loss, state.params.net, state.ema.net))   # [S, 3]
+        ok = np.asarray(jax.vmap(finite_flags)(loss, state.params.net, state.ema.net))[:self.seeds]   # [S, 3]
         bad = [f"seed {r.cfg.seed}" for r, fine in zip(self.runs, ok) if not fine.all()]
         if bad:
             raise NonFiniteError(f"iteration {it}: non-finite loss or parameters in {', '.join(bad)} (learning rate "
@@ -225,9 +268,16 @@ class SeedRuns:
 
 
 def mean_row(rows: list[dict]) -> dict:
-    """The numbers of one iteration's rows averaged over seeds (for the progress bar)."""
-    return {k: float(np.mean([r[k] for r in rows])) if isinstance(v, (int, float)) else v
-            for k, v in rows[0].items()}
+    """The numbers of one iteration's rows averaged over the lanes that have them (for the
+    progress bar)."""
+    keys = dict.fromkeys(k for r in rows for k in r)   # lanes that do not practise lack its columns
+    return {k: float(np.mean([r[k] for r in rows if k in r])) if isinstance(first(rows, k), (int, float))
+            else first(rows, k) for k in keys}
+
+
+def first(rows: list[dict], key: str):
+    """The first row's value of `key` among those that have it."""
+    return next(r[key] for r in rows if key in r)
 
 
 def seed_spread(runs: list[dict]) -> dict:

@@ -11,6 +11,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 
 from models.config import PolicyConfig
@@ -19,7 +20,7 @@ from models.policy import PolicyParams, ensemble_size, init_ensemble
 from training.cache import Cache
 from training.config import TrainConfig
 from training.loss import policy_loss
-from training.mesh import MEMBER, Layout, single_device
+from training.mesh import Layout, single_device
 from training.sampler import sample_subsequences
 
 
@@ -36,21 +37,46 @@ def acting_params(state: TrainState) -> PolicyParams:
     return state.ema
 
 
-def updated_ema(decay: float, ema: PolicyParams, params: PolicyParams) -> PolicyParams:
-    """ema <- decay * ema + (1 - decay) * params (the normalizer is shared, never averaged).
+class Knobs(NamedTuple):
+    """The TrainConfig settings an ablation varies between the lanes of one program, as data
+    (training.seeds): each is a Python float for one run (constants in its program, as written in
+    its config) or an array [L] over the lanes of a batch (vmapped with them). `ema_rate` is
+    1 - ema_decay computed on the host in double precision, so that a lane's float32 arithmetic is
+    the same as that of the run alone."""
+    learning_rate: Any
+    ema_decay: Any
+    ema_rate: Any
+
+
+def knobs_of(tcfg: TrainConfig) -> Knobs:
+    """One run's knobs: its config's values, as Python floats."""
+    return Knobs(float(tcfg.learning_rate), float(tcfg.ema_decay), 1.0 - float(tcfg.ema_decay))
+
+
+def lane_knobs(tcfgs) -> Knobs:
+    """The knobs of several runs as float32 arrays [L] (one per lane)."""
+    ks = [knobs_of(t) for t in tcfgs]
+    return Knobs(*(jnp.asarray(np.array(v, np.float32)) for v in zip(*ks)))
+
+
+def updated_ema(decay, ema: PolicyParams, params: PolicyParams, rate=None) -> PolicyParams:
+    """ema <- decay * ema + (1 - decay) * params (the normalizer is shared, never averaged);
+    `rate` is 1 - decay when decay is a lane's array (Knobs.ema_rate).
 
     A small-batch imitation loss is noisy: the landing point is sensitive to the stroke's timing,
     and single Adam iterates swing by 15-20 points of success from one evaluation to the next
     (docs/RESULTS.md); the average over the last ~1 / (1 - decay) steps does not."""
-    if decay == 0.0:
+    if isinstance(decay, float) and decay == 0.0:
         return params
-    net = jax.tree.map(lambda a, p: decay * a + (1.0 - decay) * p, ema.net, params.net)
+    rate = 1.0 - decay if rate is None else rate
+    net = jax.tree.map(lambda a, p: decay * a + rate * p, ema.net, params.net)
     return params._replace(net=net)
 
 
-def optimizer(tcfg: TrainConfig) -> optax.GradientTransformation:
-    """Global-norm clipping then Adam."""
-    return optax.chain(optax.clip_by_global_norm(tcfg.grad_clip), optax.adam(tcfg.learning_rate))
+def optimizer(tcfg: TrainConfig, learning_rate=None) -> optax.GradientTransformation:
+    """Global-norm clipping then Adam (at `learning_rate`, a lane's value, or the config's)."""
+    lr = tcfg.learning_rate if learning_rate is None else learning_rate
+    return optax.chain(optax.clip_by_global_norm(tcfg.grad_clip), optax.adam(lr))
 
 
 def init_train_state(key, pcfg: PolicyConfig, tcfg: TrainConfig, norm: Normalizer) -> TrainState:
@@ -66,25 +92,28 @@ def state_sharding(layout: Layout) -> TrainState:
 
 
 def member_update(pcfg: PolicyConfig, tcfg: TrainConfig, params: PolicyParams, opt_state, cache: Cache, key,
-                  place=lambda batch: batch):
+                  place=lambda batch: batch, learning_rate=None):
     """One member: sample a batch, one optimizer step -> (params, opt_state, loss []).
     `place` puts the sampled windows [B, ...] where they are computed on (Layout.constrain_batch)."""
     batch = place(sample_subsequences(key, cache, tcfg.window, tcfg.batch_size,
                                       pcfg.input_frames, pcfg.obs_size, tcfg.demo_fraction, tcfg.balance))
     loss, grads = jax.value_and_grad(
         lambda net: policy_loss(pcfg, params._replace(net=net), batch))(params.net)
-    updates, opt_state = optimizer(tcfg).update(grads, opt_state, params.net)
+    updates, opt_state = optimizer(tcfg, learning_rate).update(grads, opt_state, params.net)
     return params._replace(net=optax.apply_updates(params.net, updates)), opt_state, loss
 
 
-def _ensemble_update(pcfg, tcfg, layout: Layout, state: TrainState, cache: Cache, key):
+def _ensemble_update(pcfg, tcfg, layout: Layout, state: TrainState, cache: Cache, key, knobs: Knobs | None = None):
+    kn = knobs_of(tcfg) if knobs is None else knobs
     keys = jax.random.split(key, ensemble_size(state.params))
     # spmd_axis_name: the vmapped member axis is the mesh's `member` axis, so the per-member
     # constraint on the windows' [B] axis becomes [N over member, B over batch].
-    update = jax.vmap(lambda p, o, k: member_update(pcfg, tcfg, p, o, cache, k, layout.constrain_batch),
-                      spmd_axis_name=MEMBER)
+    update = jax.vmap(lambda p, o, k: member_update(pcfg, tcfg, p, o, cache, k, layout.constrain_batch,
+                                                    kn.learning_rate),
+                      spmd_axis_name=layout.member_axis)
     params, opt_state, loss = update(state.params, state.opt_state, keys)
-    return TrainState(params, opt_state, state.step + 1, updated_ema(tcfg.ema_decay, state.ema, params)), loss
+    ema = updated_ema(kn.ema_decay, state.ema, params, kn.ema_rate)
+    return TrainState(params, opt_state, state.step + 1, ema), loss
 
 
 def _compiled(layout: Layout, fn):
@@ -101,12 +130,13 @@ def make_train_step(pcfg: PolicyConfig, tcfg: TrainConfig, layout: Layout | None
 
 
 def train_loop_fn(pcfg: PolicyConfig, tcfg: TrainConfig, num_steps: int, layout: Layout | None = None):
-    """The pure `train_loop(state, cache, key) -> (state, loss [num_steps, N])`: `num_steps`
-    updates as one scan (to compile alone, vmapped over seeds, or inside a practice round)."""
+    """The pure `train_loop(state, cache, key, knobs=None) -> (state, loss [num_steps, N])`:
+    `num_steps` updates as one scan (to compile alone, vmapped over lanes, or inside a practice
+    round); `knobs` (Knobs) a lane's settings, None: the config's."""
     layout = layout or single_device()
 
-    def loop(state, cache, key):
-        body = lambda s, k: _ensemble_update(pcfg, tcfg, layout, s, cache, k)  # noqa: E731
+    def loop(state, cache, key, knobs=None):
+        body = lambda s, k: _ensemble_update(pcfg, tcfg, layout, s, cache, k, knobs)  # noqa: E731
         return jax.lax.scan(body, state, jax.random.split(key, num_steps))
     return loop
 

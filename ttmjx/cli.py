@@ -255,7 +255,7 @@ class AblateArgs(Report):
     markdown table (mean +- 95% interval over seeds), learning curves and landing maps
     (eval/ablate.py ABLATIONS lists the variants). The same command resumes: finished cells are
     skipped, a half-finished one resumes from its checkpoint."""
-    BOUNDS: ClassVar[dict] = {"seeds": (1, 1000), "trajectories": (1, None)}
+    BOUNDS: ClassVar[dict] = {"seeds": (1, 1000), "trajectories": (1, None), "devices": (1, None)}
     name: Annotated[Literal[ABLATION_NAMES], tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
     """The ablation: demos, noise, ensembles, inputs, bootstrap, practice or ratio."""
     scale: Literal["auto", *SCALE_NAMES] = "auto"
@@ -271,6 +271,8 @@ class AblateArgs(Report):
     set: tuple[str, ...] = ()
     """FIELD=VALUE settings of the run configuration for every cell, before the variants' own
     (e.g. --set demo_source=paper: the table on the paper's bootstrap procedure)."""
+    devices: int | None = None
+    """Lay each program's lanes (the cells it trains together) over this many local devices; None: all of them."""
     report: Flag = False
     """Only (re)build the table, curves, landing maps and summary from the finished cells."""
     plan: Flag = False
@@ -613,7 +615,7 @@ def ablate(a: AblateArgs) -> None:
     scale = ablations.resolve_scale(a.scale)
     out = a.out or ablations.default_out(a.name, scale)
     if a.plan:
-        ablations.plan(a.name, scale, a.seeds, out, a.cells, a.trajectories, a.set)   # refuses what would fail
+        ablations.plan(a.name, scale, a.seeds, out, a.cells, a.trajectories, a.set, a.devices)   # refuses what would fail
         print("\n".join(ablations.status(out, a.name, a.seeds)))
         return
     command = " ".join(["ttmjx ablate", a.name, "--scale", scale, "--seeds", str(a.seeds)]
@@ -624,7 +626,7 @@ def ablate(a: AblateArgs) -> None:
         summary = ablations.build_report(a.name, scale, out, command)
     else:
         summary = ablations.run(a.name, scale, a.seeds, out, a.cells, a.trajectories, progress=not a.json,
-                                command=command, settings=a.set)
+                                command=command, settings=a.set, devices=a.devices)
     table_report(a, "ablate", summary, out)
 
 
