@@ -16,12 +16,13 @@ the host and only the compiled pieces are sharded.
 """
 from __future__ import annotations
 
+import os
 from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import PartitionSpec
+from jax.sharding import NamedSharding, PartitionSpec
 
 from models.config import PolicyConfig
 from models.policy import make_policy, with_action_noise, with_integrating_action_noise
@@ -151,6 +152,9 @@ def over_lanes(fn, layout: Layout):
     if layout.mesh.size == 1:
         return jax.jit(fn)
     lanes = PartitionSpec(LANE)
+    if os.environ.get("TTMJX_LANE_SPLIT", "shard_map") == "jit":   # XLA's partitioner splits the lane axis
+        split = NamedSharding(layout.mesh, lanes)
+        return jax.jit(fn, in_shardings=split, out_shardings=split)
     return jax.jit(jax.shard_map(fn, mesh=layout.mesh, in_specs=lanes, out_specs=lanes, check_vma=False))
 
 
