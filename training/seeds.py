@@ -13,8 +13,9 @@ that does not practise plays each round and keeps nothing, so it trains as LFP's
 rounds do.
 
 The lanes are laid over the devices (training.mesh.lane_layout: a `lane` mesh axis, every
-local device unless cfg.devices says fewer): each device computes a block of lanes (shard_map),
-nothing passes between lanes, and a lane count that the devices do not divide is padded with
+local device unless cfg.devices says fewer): each device computes a block of lanes (jit's
+partitioner splits the lane axis; training.practice.over_lanes), nothing passes between lanes,
+and a lane count that the devices do not divide is padded with
 copies of the last lane that are computed and never written.
 
 Each seed keeps its own run directory (config.json, metrics.jsonl, curves, Orbax checkpoints)

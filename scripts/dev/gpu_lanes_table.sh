@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# One call on four H200s (nvidia-h200-x4), lanes split by jit's partitioner (issue #45):
+#  1. 16 lanes of paper-sim-new (seeds 0-15) over 4 GPUs, 4 lanes a GPU, 1 pretraining chunk and
+#     3 practice rounds: against the 4 lanes on 1 GPU of scripts/dev/gpu_lanes_split.sh (the same
+#     load per GPU), the 4-GPU speed-up of a table;
+#  2. `ttmjx ablate practice --scale full --seeds 5 --cells goalseye,lfp-equal-updates`, the 10
+#     lanes of GoalsEye and LFP at equal updates as one program over 4 GPUs, at 3,000 trajectories.
+#   bash scripts/dev/gpu_lanes_table.sh      (carry .wheels)
+# Writes $OUT/lanes.tgz (metrics.jsonl of every lane, the ablation's results and table, logs) and $OUT/log.txt.
+set -uo pipefail
+if ls .wheels/*.whl >/dev/null 2>&1 && ! python3 -c "import mujoco, brax" 2>/dev/null; then
+  python3 -m pip install -q --no-deps --no-index .wheels/*.whl 2>&1 | grep -v -i warn | tail -2
+fi
+export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 TTMJX_JAX_CACHE=$PWD/.jax_cache XLA_PYTHON_CLIENT_PREALLOCATE=false
+OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"; R=/tmp/lanes; mkdir -p "$R"
+t0=$(date +%s)
+log() { echo "$(( $(date +%s) - t0 ))s $*" | tee -a "$OUT/log.txt"; }
+log "start $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | tr '\n' ' ')"
+s=$(date +%s)
+timeout -s TERM "${LIMIT16:-230}" python3 -m ttmjx train --preset paper-sim-new --seeds 16 --pretrain-steps 200 \
+  --demos 400 --max-iterations 4 --run-dir "$R/lanes16" >"$R/lanes16.log" 2>&1
+log "16 lanes over 4 GPUs rc=$? wall $(( $(date +%s) - s ))s"
+s=$(date +%s)
+timeout -s TERM "${LIMITA:-300}" python3 -m ttmjx ablate practice --scale full --seeds 5 \
+  --cells goalseye,lfp-equal-updates --trajectories 3000 --out "$R/ablate" >"$R/ablate.log" 2>&1
+log "ablate practice (10 lanes, 3,000 trajectories) rc=$? wall $(( $(date +%s) - s ))s"
+log done
+tar czf "$OUT/lanes.tgz" -C "$R" --exclude checkpoints --exclude tensorboard --exclude demos . 2>/dev/null
