@@ -143,3 +143,16 @@ def test_lane_padding_and_device_counts():
 def test_from_json_keeps_the_lane_settings(one_program):
     _, cfgs = one_program
     assert from_json(to_json(cfgs[2])) == cfgs[2]
+
+
+def test_more_devices_than_there_are_is_refused_before_any_cell(tmp_path):
+    """`ttmjx ablate --devices N` beyond this machine's devices: one line, exit 2, nothing written."""
+    out = tmp_path / "table"
+    n = jax.local_device_count()
+    proc = subprocess.run([sys.executable, "-m", "ttmjx", "ablate", "practice", "--scale", "tiny", "--seeds", "1",
+                           "--devices", str(n + 2), "--out", str(out)], cwd=ROOT, capture_output=True, text=True,
+                          timeout=300, env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == (f"ttmjx ablate: error: --devices {n + 2} but only {n} cpu "
+                                                   f"device(s) are available")
+    assert not out.exists()

@@ -134,6 +134,13 @@ def test_memory_is_budgeted_for_every_seed_before_compiling():
     assert five == 5 * one
     with pytest.raises(ValueError, match=r"--seeds 40 \(runs in one program\) need ~[0-9.]+ GiB.*or the seed count"):
         budget.check_fits(cfg, available=80 * budget.GiB, seeds=40)
+    # the lane count that fits is said: 0.9 x 80 GiB over one run's estimate
+    fit = int(0.9 * 80 * budget.GiB // one)
+    with pytest.raises(ValueError, match=rf"or the seed count: {fit} lane\(s\) fit a device$"):
+        budget.check_fits(cfg, available=80 * budget.GiB, seeds=40)
+    with pytest.raises(ValueError, match=rf"^40 lanes on each of 4 devices need .*: {fit} lane\(s\) fit a device, "
+                                         rf"{4 * fit} over the 4 devices$"):
+        budget.check_fits(cfg, available=80 * budget.GiB, seeds=40, devices=4)
 
 
 def test_seed_index_picks_a_seed_or_names_the_choice(tmp_path):

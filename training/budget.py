@@ -53,18 +53,24 @@ def needs(cfg: RunConfig) -> dict[str, int]:
     }
 
 
-def check_fits(cfg: RunConfig, available: int | None = None, fraction: float = 0.9, seeds: int = 1) -> dict[str, int]:
-    """Raise ValueError naming the largest part if the estimate for `seeds` runs of `cfg` in one
-    program (every part grows linearly with them) exceeds `fraction` of the device's memory;
-    returns the estimate for all of them."""
+def check_fits(cfg: RunConfig, available: int | None = None, fraction: float = 0.9, seeds: int = 1,
+               devices: int = 1) -> dict[str, int]:
+    """Raise ValueError naming the largest part if the estimate for `seeds` runs (lanes) of `cfg`
+    on one device (every part grows linearly with them) exceeds `fraction` of its memory, with
+    the lane count that fits (over `devices` devices, a block of lanes each); returns the
+    estimate for all of them."""
     parts = {k: v * seeds for k, v in needs(cfg).items()}
     total, have = sum(parts.values()), available if available is not None else device_bytes()
     if total > fraction * have:
         name, big = max(parts.items(), key=lambda kv: kv[1])
+        fit = int(fraction * have // (total / seeds))
         who = "this run needs" if seeds == 1 else f"--seeds {seeds} (runs in one program) need"
+        if devices > 1:
+            who = f"{seeds} lanes on each of {devices} devices need"
+        more = "" if seeds == 1 else (f" or the seed count: {fit} lane(s) fit a device"
+                                      + (f", {fit * devices} over the {devices} devices" if devices > 1 else ""))
         raise ValueError(f"{who} ~{total / GiB:.1f} GiB of device memory, {big / GiB:.1f} GiB of it for the "
-                         f"{name}; the device has {have / GiB:.1f} GiB: lower those settings"
-                         + ("" if seeds == 1 else " or the seed count"))
+                         f"{name}; the device has {have / GiB:.1f} GiB: lower those settings{more}")
     return parts
 
 

@@ -153,11 +153,17 @@ def lane_layout(lanes: int, devices: int | None = None) -> Layout:
     (`lane`) over `devices` devices (None: every local device, at most one per lane), each device
     the lanes of its block; inside a lane nothing is placed (`free`). ValueError (one line, with
     the counts) for more devices than there are."""
+    available = check_local_devices(devices)
+    n = min(lanes, available) if devices is None else devices
+    return Layout(jax.make_mesh((n,), (LANE,), (AxisType.Auto,), devices=jax.local_devices()[:n]), free=True)
+
+
+def check_local_devices(devices: int | None) -> int:
+    """The local device count; ValueError (one line) if `devices` asks for more."""
     available = jax.local_device_count()
     if devices is not None and devices > available:
         raise ValueError(f"--devices {devices} but only {available} {jax.default_backend()} device(s) are available")
-    n = min(lanes, available) if devices is None else devices
-    return Layout(jax.make_mesh((n,), (LANE,), (AxisType.Auto,), devices=jax.local_devices()[:n]), free=True)
+    return available
 
 
 def padded_lanes(lanes: int, devices: int) -> int:

@@ -147,7 +147,7 @@ class SeedRuns:
         self.devices = self.layout.mesh.size
         self.lanes = mesh.padded_lanes(self.seeds, self.devices)   # computed lanes, padding included
         # refused with the estimate before anything is compiled: each device holds its block of lanes
-        budget.check_fits(cfg, seeds=self.lanes // self.devices)
+        budget.check_fits(cfg, seeds=self.lanes // self.devices, devices=self.devices)
         self.backend = Backend(cfg.world, resolve_backend(cfg.backend))
         # each lane's Run makes and restores its own state on one device; `place` then lays the
         # stacked lanes over the lane mesh

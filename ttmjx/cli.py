@@ -612,6 +612,8 @@ def evaluate(a: EvalArgs) -> None:
 
 def ablate(a: AblateArgs) -> None:
     from eval import ablate as ablations
+    from training.mesh import check_local_devices
+    check_local_devices(a.devices)   # before any cell is planned or compiled
     scale = ablations.resolve_scale(a.scale)
     out = a.out or ablations.default_out(a.name, scale)
     if a.plan:
@@ -621,7 +623,8 @@ def ablate(a: AblateArgs) -> None:
     command = " ".join(["ttmjx ablate", a.name, "--scale", scale, "--seeds", str(a.seeds)]
                        + (["--cells", a.cells] if a.cells else [])
                        + (["--trajectories", str(a.trajectories)] if a.trajectories else [])
-                       + (["--out", a.out] if a.out else []) + [f"--set {p}" for p in a.set])
+                       + (["--out", a.out] if a.out else []) + [f"--set {p}" for p in a.set]
+                       + (["--devices", str(a.devices)] if a.devices else []))
     if a.report:
         summary = ablations.build_report(a.name, scale, out, command)
     else:
