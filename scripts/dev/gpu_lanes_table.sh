@@ -6,6 +6,8 @@
 #  2. `ttmjx ablate practice --scale full --seeds 5 --cells goalseye,lfp-equal-updates`, the 10
 #     lanes of GoalsEye and LFP at equal updates as one program over 4 GPUs, at 3,000 trajectories.
 #   bash scripts/dev/gpu_lanes_table.sh      (carry .wheels)
+# Its first run (2026-11-28) lost its outputs: the 16 lanes ran 291 s, the ablation past the
+# call's limit, and the archive came last; now it is written on exit, and LIMITA is 200.
 # Writes $OUT/lanes.tgz (metrics.jsonl of every lane, the ablation's results and table, logs) and $OUT/log.txt.
 set -uo pipefail
 if ls .wheels/*.whl >/dev/null 2>&1 && ! python3 -c "import mujoco, brax" 2>/dev/null; then
@@ -14,6 +16,8 @@ fi
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 TTMJX_JAX_CACHE=$PWD/.jax_cache XLA_PYTHON_CLIENT_PREALLOCATE=false
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"; R=/tmp/lanes; mkdir -p "$R"
 t0=$(date +%s)
+# Whatever happens (a step past the call's limit), what was written comes back.
+trap 'tar czf "$OUT/lanes.tgz" -C "$R" --exclude checkpoints --exclude tensorboard --exclude demos . 2>/dev/null' EXIT
 log() { echo "$(( $(date +%s) - t0 ))s $*" | tee -a "$OUT/log.txt"; }
 log "start $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | tr '\n' ' ')"
 s=$(date +%s)
@@ -21,8 +25,7 @@ timeout -s TERM "${LIMIT16:-230}" python3 -m ttmjx train --preset paper-sim-new 
   --demos 400 --max-iterations 4 --run-dir "$R/lanes16" >"$R/lanes16.log" 2>&1
 log "16 lanes over 4 GPUs rc=$? wall $(( $(date +%s) - s ))s"
 s=$(date +%s)
-timeout -s TERM "${LIMITA:-300}" python3 -m ttmjx ablate practice --scale full --seeds 5 \
+timeout -s TERM "${LIMITA:-200}" python3 -m ttmjx ablate practice --scale full --seeds 5 \
   --cells goalseye,lfp-equal-updates --trajectories 3000 --out "$R/ablate" >"$R/ablate.log" 2>&1
 log "ablate practice (10 lanes, 3,000 trajectories) rc=$? wall $(( $(date +%s) - s ))s"
 log done
-tar czf "$OUT/lanes.tgz" -C "$R" --exclude checkpoints --exclude tensorboard --exclude demos . 2>/dev/null
