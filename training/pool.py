@@ -21,6 +21,11 @@ from ttmjx.world.config import World
 from ttmjx.world.env import uniform_goals
 
 
+# The last demonstrations collected in this process, by (world, source, count, seed, backend):
+# a table's arms of one seed (GoalsEye and LFP at equal updates) start in turn from the same ones.
+_COLLECTED: dict = {}
+
+
 def load_demos(cfg: RunConfig, progress: bool) -> record.Trajectories | None:
     """The bootstrap demonstrations: a dataset directory, or collected now (cached on disk in
     the run directory so a resumed run does not collect them twice)."""
@@ -36,7 +41,12 @@ def load_demos(cfg: RunConfig, progress: bool) -> record.Trajectories | None:
     if os.path.exists(os.path.join(path, "trajectories.npz")):
         return record.load(path)[0]
     backend = resolve_backend(cfg.backend)
-    traj = demos.collect(cfg.world, cfg.demo_source, cfg.demos, cfg.seed + 10_000, backend, progress=progress)
+    key = (cfg.world, cfg.demo_source, cfg.demos, cfg.seed + 10_000, backend)
+    if key not in _COLLECTED:   # the lanes of a table that share a seed share its demonstrations
+        _COLLECTED.clear()
+        _COLLECTED[key] = demos.collect(cfg.world, cfg.demo_source, cfg.demos, cfg.seed + 10_000, backend,
+                                        progress=progress)
+    traj = _COLLECTED[key]
     record.save(path, traj, {"source": cfg.demo_source, "source_version": demos.SOURCE_VERSION,
                              "distribution": cfg.world.throws.name,
                              "seed": cfg.seed + 10_000, **demos.summary(traj, cfg.world)})
