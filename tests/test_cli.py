@@ -51,6 +51,7 @@ def test_throw_json_reports_frame_and_simulated_bounces(capsys):
         assert 5.0 <= np.linalg.norm(t["launch_vel"]) <= 9.0
 
 
+@pytest.mark.slow
 def test_bench_c_reports_rates_against_the_raw_rollout_baseline():
     res = last_json(ttmjx("bench", "--backend", "c", "--batch", "16", "--json"))
     for k in ("physics_steps_per_s", "throws_per_s", "compile_s", "rollout_baseline_steps_per_s"):
