@@ -79,12 +79,6 @@ def five_run(world: World, pcfg: PolicyConfig, params, backend: Backend, key, pe
     return out, tr
 
 
-def evaluate_five(world: World, pcfg: PolicyConfig, params, backend: Backend, key, per_goal: int = 40,
-                  members: int | None = None) -> dict:
-    """The five-goal protocol: per_goal attempts at each of goals A-E; totals plus per goal."""
-    return five_run(world, pcfg, params, backend, key, per_goal, members)[0]
-
-
 def goal_set_run(world: World, pcfg: PolicyConfig, params, backend: Backend, key, goals,
                  members: int | None = None) -> tuple[dict, Trajectories]:
     """(goal_metrics, Trajectories [N]) of one attempt at each of the user's goals [N, 2]. The

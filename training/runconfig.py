@@ -109,7 +109,8 @@ MAX_SEED = 2 ** 32 - 1
 
 
 def _cpu_default() -> RunConfig:
-    """Sized so the whole main job (demonstrations included) ends within ~20 min on 2 CPU cores."""
+    """Sized so that the whole main job (demonstrations included) is a short experiment on 2 CPU
+    cores (its measured time: docs/BENCHMARKS.md)."""
     return RunConfig(
         preset="default",
         # The cell's timing, randomized per episode (ttmjx.world.config.CELL_TRAINING); ideal
@@ -216,9 +217,9 @@ def from_json(d: dict) -> RunConfig:
     d["train"] = TrainConfig(**d["train"])
     d["data"] = tuple(d.get("data", ()))
     # Older configurations say "scripted": the goal-directed striker, now "oracle".
-    from ttmjx.tools.demos import LEGACY
+    from ttmjx.tools.demos import renamed
     if "demo_source" in d:
-        d["demo_source"] = LEGACY.get(d["demo_source"], d["demo_source"])
+        d["demo_source"] = renamed(d["demo_source"])
     return RunConfig(**d)
 
 

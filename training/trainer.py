@@ -29,7 +29,7 @@ from training.checkpoint import Checkpointed, Counters
 from training.practice import Practice, stats_row
 from training.runconfig import BOOKKEEPING, RunConfig, to_json
 from training.update import acting_params, init_train_state
-from ttmjx.tools.demos import LEGACY
+from ttmjx.tools.demos import renamed
 from ttmjx.world import files
 from ttmjx.world.backends import Backend, resolve_backend
 
@@ -126,7 +126,7 @@ def check_same_config(cfg: RunConfig, saved: dict) -> None:
     run in cfg.run_dir cannot be resumed with it."""
     mine = to_json(cfg)
     if "demo_source" in saved:   # an old name ("scripted") means today's "oracle"
-        saved = {**saved, "demo_source": LEGACY.get(saved["demo_source"], saved["demo_source"])}
+        saved = {**saved, "demo_source": renamed(saved["demo_source"])}
     diff = {k for k in set(saved) | set(mine) if saved and saved.get(k) != mine.get(k) and k not in RESUME_MAY_CHANGE}
     if diff:
         raise ValueError(f"{cfg.run_dir} holds a run with a different config (fields {sorted(diff)}); "

@@ -52,18 +52,24 @@ COVERAGE_GRID = (6, 4)  # cells along the table's length (x) and width (y) of th
 COVER_RADIUS = 0.3      # m: the paper's looser success radius; "area within 30 cm of a landing"
 
 
+def renamed(source: str) -> str:
+    """An old source name's current one (`LEGACY`: "scripted" is "oracle"); others unchanged.
+    The one place old names are read: configs, checkpoints and datasets go through it."""
+    return LEGACY.get(source, source)
+
+
 def dataset_source(meta: dict) -> str:
     """The current name of the source a dataset's metadata records: `paper` written without
     a `source_version` is today's `striker`."""
     source = meta.get("source", "?")
     if source == "paper" and meta.get("source_version", 1) < SOURCE_VERSION:
         return "striker"
-    return LEGACY.get(source, source)
+    return renamed(source)
 
 
 def source_name(source: str) -> str:
     """The current name of a source (old names mapped, `LEGACY`); ValueError for unknown ones."""
-    source = LEGACY.get(source, source)
+    source = renamed(source)
     if source not in SOURCES:
         raise ValueError(f"unknown demonstration source {source!r}; expected one of {SOURCES}")
     return source
