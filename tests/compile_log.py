@@ -1,7 +1,7 @@
 """Opt-in profile of what the suite compiles: with TTMJX_COMPILE_LOG=FILE, every program a test
 process hands to XLA appends one JSON line to FILE: the test running, the program's name, its
 input and output types (a hash and their first 300 characters), the seconds spent (compile, or
-read from the persistent cache) and whether XLA compiled it. Subprocesses (`ttmjx ...`) are not seen. scripts/compile_profile.py sums the lines.
+read from the persistent cache) and whether XLA compiled it. Subprocesses (`ttmjx ...`) are not seen. scripts/dev/compile_profile.py sums the lines.
 
 Loaded by tests/conftest.py only when the variable is set; the suite is otherwise untouched."""
 import hashlib

@@ -129,7 +129,7 @@ def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, thro
 
 # Throws are solved for this many rounds at once. Solving launch velocities is a sequential loop
 # through the flight (ttmjx.world.thrower): on a GPU it takes about as long for 16k throws as for
-# 1k (docs/BENCHMARKS.md, scripts/profile_practice.py).
+# 1k (docs/BENCHMARKS.md, scripts/dev/profile_practice.py).
 THROW_BLOCK = 16
 THROW_STREAM = 0x7E40   # fold-in tag that separates the throw keys from the per-round keys
 

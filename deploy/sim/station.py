@@ -16,7 +16,7 @@ MuJoCo C physics, so the robot runner plays whole episodes exactly as against ha
   instant on when it falls on the tracker's rate, timestamped, delivered tracker_latency_s late.
   `TIMING` names sensor profiles: nominal (the defaults above) and zero (every physics step
   sampled, no latency: with SimClock(charge_compute=False) and episodes started at the launch
-  the runner sees what the simulation's policy sees, scripts/runner_vs_eval.py). Before a launch and
+  the runner sees what the simulation's policy sees, scripts/dev/runner_vs_eval.py). Before a launch and
   after `finish_throw` the ball is parked out of sight (the tracker reports nothing). The room
   keeps a ball in view (a real lab is enclosed): it bounces off the floor and stops at barriers
   (|x| = room_x, |y| = room_y), so a missed ball does not vanish from the tracker mid-episode.
@@ -205,7 +205,7 @@ class SimTracker:
 # Sensor and actuation timing profiles by name (ttmjx.world.config.TIMING_PROFILES, the one timing
 # model of the training world and this station). zero: ideal sensors, every physics step sampled
 # and delivered at once, so the runner sees the state the simulation's policy sees (with
-# SimClock(charge_compute=False) and episodes started at the launch: scripts/runner_vs_eval.py).
+# SimClock(charge_compute=False) and episodes started at the launch: scripts/dev/runner_vs_eval.py).
 TIMING = TIMING_PROFILES
 
 

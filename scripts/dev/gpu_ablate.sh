@@ -2,7 +2,7 @@
 # On the lent GPU machine: run cells of one ablation side by side (one process per cell spec;
 # MJX rollouts are latency-bound, so runs share one GPU), each under a time limit, then copy the
 # small cell results (not the checkpoints) and the rebuilt report to $OUT.
-#   bash scripts/gpu_ablate.sh SECONDS NAME TRAJECTORIES CELLS [CELLS ...]
+#   bash scripts/dev/gpu_ablate.sh SECONDS NAME TRAJECTORIES CELLS [CELLS ...]
 set -uo pipefail
 python3 -m pip install -q --no-deps --no-index .wheels/*.whl 2>&1 | grep -v -i warn | tail -2
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false TTMJX_JAX_CACHE=$PWD/.jax_cache

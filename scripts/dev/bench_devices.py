@@ -1,7 +1,7 @@
 """Time one practice round and one update loop of a preset on 1..N devices of this host
 (docs/SCALING.md): the numbers for the multi-GPU table.
 
-    python scripts/bench_devices.py paper-sim-new 1 2        # on a 2-GPU machine
+    python scripts/dev/bench_devices.py paper-sim-new 1 2        # on a 2-GPU machine
 Prints one JSON line per device count: the mesh, seconds per round (rollouts of
 episodes_per_ssp throws + steps_between_ssp updates) and per update loop after a warm-up call,
 throughput, and the speed-up over the first count.

@@ -2,7 +2,7 @@
 the first compiles the rollout, the later ones must reuse it (docs/BENCHMARKS.md: each
 evaluation compiled it again while make_policy built a new Policy per call).
 
-    python scripts/eval_reuse.py
+    python scripts/dev/eval_reuse.py
 """
 import time
 

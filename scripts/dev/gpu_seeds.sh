@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # On the lent GPU machine (device tool), from the repository root: `ttmjx bench --train` for
 # PRESET:SEEDS pairs, then any further ttmjx command lines, each under its own time limit.
-#   bash scripts/gpu_seeds.sh paper-sim:1 paper-sim:5 -- "train --preset paper-sim --seeds 5 ..."
+#   bash scripts/dev/gpu_seeds.sh paper-sim:1 paper-sim:5 -- "train --preset paper-sim --seeds 5 ..."
 # Writes $OUT/gpu.txt, $OUT/bench_<preset>_<seeds>.json and $OUT/log.txt (everything printed).
 set -uo pipefail
 python3 -m pip install -q --no-deps --no-index .wheels/*.whl 2>&1 | grep -v -i warn | tail -2

@@ -4,7 +4,7 @@ environments stacked under the seeds' vmap, where no episode ends (159 of every 
 with the restart's predicate shared by the seeds (resumable.any_seed, as built) and per seed
 (vmap turns the cond into a select: every step solves every environment's throw pool and resets
 every environment). Prints seconds per step after compiling:
-    python scripts/seeds_cond_cost.py SEEDS ENVS POOL [STEPS]      # e.g. 2 64 16 4"""
+    python scripts/dev/seeds_cond_cost.py SEEDS ENVS POOL [STEPS]      # e.g. 2 64 16 4"""
 import sys
 import time
 

@@ -3,7 +3,7 @@
 # runner: `ttmjx train` (the GPU default preset), `ttmjx export RUN --out EX` (no flag), and
 # `ttmjx robot run --policy EX --station sim` in SESSIONS sessions of N uniform goals on the
 # machine's CPU cores (seeds 50, 51, ...), side by side.
-#   bash scripts/gpu_main_job.sh
+#   bash scripts/dev/gpu_main_job.sh
 # Environment: TRAIN_ARGS (extra `ttmjx train` flags), TRAIN_LIMIT (s, 420), SESSIONS (4), N (50).
 # Writes $OUT/main_job.tgz (config, metrics, every JSON) and $OUT/log.txt, refreshed every 20 s.
 set -uo pipefail

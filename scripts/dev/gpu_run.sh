@@ -2,7 +2,7 @@
 # Runs on the lent GPU machine (device tool) from the repository root. Installs the carried
 # wheels (../shared/gpu/wheelhouse.sh builds them into .wheels), then runs the named steps,
 # writing JSON results and small artefacts under $OUT.
-#   bash scripts/gpu_run.sh bench demos ...      (training runs: scripts/gpu_train.sh)
+#   bash scripts/dev/gpu_run.sh bench demos ...      (training runs: scripts/dev/gpu_train.sh)
 set -uo pipefail
 python3 -m pip install -q --no-deps --no-index .wheels/*.whl 2>&1 | grep -v -i warn | tail -2
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false

@@ -3,7 +3,7 @@
 # machine's 16 CPU cores, or any many-core machine), then export each and play it on the
 # simulated station: the default session (timing drawn per throw within the trained ranges,
 # start pose perturbed) and the fixed-timing sweep points.
-#   bash scripts/cpu_variants.sh NAME="--flag v ..." NAME2="..."
+#   bash scripts/dev/cpu_variants.sh NAME="--flag v ..." NAME2="..."
 # Sweeps: ball latency +0/25/50 ms, command delay +0/10/20 ms, on the trained timing's centre.
 # Environment: PRESET (cpu), SEED (0), N (goals per station session, 100), SWEEP (1: sweeps too), TRAIN_LIMIT (s).
 # Writes $OUT/variants.tgz (every run's config, metrics, export and station JSON) and $OUT/log.txt.

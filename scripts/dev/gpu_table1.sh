@@ -2,8 +2,8 @@
 # On the lent GPU machine: Table I's GoalsEye and LFP (equal updates) arms, 5 seeds each, as
 # two programs side by side that outlive one device call (setsid), so a table longer than one
 # call is finished by the calls that follow while the machine stays warm.
-#   bash scripts/gpu_table1.sh start TRAJECTORIES WAIT_S   # first call: launch, then watch
-#   bash scripts/gpu_table1.sh wait WAIT_S                 # later calls: keep watching
+#   bash scripts/dev/gpu_table1.sh start TRAJECTORIES WAIT_S   # first call: launch, then watch
+#   bash scripts/dev/gpu_table1.sh wait WAIT_S                 # later calls: keep watching
 # Each call leaves in $OUT: log.txt, the two arms' logs and table1.tgz (results/*.json, every
 # seed's metrics.jsonl and config.json, the report; no checkpoints), refreshed every 30 s.
 # When both arms are done, every seed's final policy is also evaluated on

@@ -3,10 +3,10 @@ the environment reset as it was (every environment solving its own throw, vmappe
 episode) against the throw pool that replaced it (one batch of n x pool throws for `pool`
 episodes), and one training-step's worth of environment steps through the wrapper brax trains
 on. Prints each piece as soon as it is measured (a call's time limit may cut the rest), then
-one JSON line; run on the GPU by scripts/gpu_baselines.sh. Each piece: (first call, compile
+one JSON line; run on the GPU by scripts/dev/gpu_baselines.sh. Each piece: (first call, compile
 included; median of later calls) in seconds.
 
-    python3 scripts/baseline_profile.py [--envs 4000] [--pool 16]
+    python3 scripts/dev/baseline_profile.py [--envs 4000] [--pool 16]
 """
 import argparse
 import json

@@ -1,5 +1,5 @@
 """Where each baseline cell's time went, and its final result, one line each (the GPU scripts'
-summary): python3 scripts/baseline_timing.py TABLE_DIR [TABLE_DIR ...]"""
+summary): python3 scripts/dev/baseline_timing.py TABLE_DIR [TABLE_DIR ...]"""
 import glob
 import json
 import os

@@ -2,8 +2,8 @@
 (`TTMJX_COMPILE_LOG=/tmp/compiles.jsonl python -m pytest ...`), or from a JAX compilation cache
 directory (each entry keeps the seconds its compile took, whole seconds).
 
-    python scripts/compile_profile.py /tmp/compiles.jsonl [--top 25]
-    python scripts/compile_profile.py .jax_cache
+    python scripts/dev/compile_profile.py /tmp/compiles.jsonl [--top 25]
+    python scripts/dev/compile_profile.py .jax_cache
 
 Prints the seconds XLA spent compiling, by program name (how many distinct programs of that
 name: a name compiled for many input shapes is a candidate for sharing one shape), by test, and

@@ -1,6 +1,6 @@
 """Time the pieces of one practice round of a preset on this machine (GPU: MJX).
 
-    python scripts/profile_practice.py paper-sim
+    python scripts/dev/profile_practice.py paper-sim
 Prints one JSON line per piece: seconds per call after a warm-up call.
 """
 import json

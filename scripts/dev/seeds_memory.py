@@ -1,7 +1,7 @@
 """Memory of one seeds-together RL epoch at `--scale full` (XLA's compile-time memory analysis,
 agents.program_memory, on whatever device JAX uses: no training is run), with the restart's
 lax.cond predicate shared by the seeds (resumable.any_seed, as built) and per seed (vmap's select):
-    python scripts/seeds_memory.py es 5"""
+    python scripts/dev/seeds_memory.py es 5"""
 import sys
 
 import jax

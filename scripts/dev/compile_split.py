@@ -5,14 +5,14 @@ the tiny SAC cell's envs, 8 steps in a scan), to set beside the RL tests' progra
 Default compile options, as the RL programs have (the fusion-emitter option of
 ttmjx.tools.calibration is for its own program only).
 
-    .venv/bin/python scripts/compile_split.py
+    .venv/bin/python scripts/dev/compile_split.py
 """
 import json
 import os
 import sys
 import time
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 

@@ -2,8 +2,8 @@
 # On a lent machine of 4 GPUs (device tool, kind nvidia-h100-x4), from the repository root: the
 # RL rows of Table I, one process per GPU, each a slice of the seeds (ttmjx baseline --seed S
 # --seeds N), each under its own limit, all inside one device call.
-#   bash scripts/gpu_baselines_x4.sh LIMIT_S "GPU:METHOD:FIRST_SEED:SEEDS[:FLAGS]" ...
-# e.g. bash scripts/gpu_baselines_x4.sh 540 "0:ppo:0:2" "1:ppo:2:2" "2:ppo:4:1" "3:es:0:2"
+#   bash scripts/dev/gpu_baselines_x4.sh LIMIT_S "GPU:METHOD:FIRST_SEED:SEEDS[:FLAGS]" ...
+# e.g. bash scripts/dev/gpu_baselines_x4.sh 540 "0:ppo:0:2" "1:ppo:2:2" "2:ppo:4:1" "3:es:0:2"
 # Specs of one lane (GPU, with an optional letter: 1, 1b) run one after another; lanes run side by
 # side, so 1 and 1b share GPU 1. FLAGS is a method's options with '+' for spaces
 # (0:ppo:0:2:--ppo.num-envs+12000).
@@ -40,5 +40,5 @@ for key in $(printf '%s\n' "$@" | cut -d: -f1 | sort -u); do
 done
 for p in "${pids[@]}"; do wait "$p"; done
 kill $PACKER 2>/dev/null; pack
-python3 scripts/baseline_timing.py "$B"/*/ | tee -a "$OUT/log.txt"
+python3 scripts/dev/baseline_timing.py "$B"/*/ | tee -a "$OUT/log.txt"
 echo "=== done $(date +%T)" | tee -a "$OUT/log.txt"

@@ -4,8 +4,8 @@
 # paper's bootstrap procedure for any-ball throws is built from scratch on the host's CPU cores.
 # Every job outlives one device call (setsid), so calls that follow while the machine is warm
 # keep watching it (a GoalsEye arm at 120k takes longer than one call).
-#   bash scripts/gpu_table1_x4.sh start WAIT_S    # first call: install, launch, then watch
-#   bash scripts/gpu_table1_x4.sh wait WAIT_S     # later calls: keep watching
+#   bash scripts/dev/gpu_table1_x4.sh start WAIT_S    # first call: install, launch, then watch
+#   bash scripts/dev/gpu_table1_x4.sh wait WAIT_S     # later calls: keep watching
 # Each call leaves in $OUT: log.txt and table1.tgz (every file under 2 MB but checkpoints: the
 # ablations' results/, each run's metrics.jsonl and config.json, the reports, the bootstrap
 # build's record, ES weights, policy and maps; each job's log tail as *.log.tail), refreshed
@@ -46,7 +46,7 @@ if [[ $mode == start ]]; then
   nproc | sed 's/^/cpu cores: /' | tee -a "$T/log.txt"
   for spec in $JOBS; do
     IFS=: read -r gpu job abl cells <<< "$spec"
-    setsid bash -c "cd $PWD; source scripts/gpu_table1_x4.sh lib; export CUDA_VISIBLE_DEVICES=$gpu
+    setsid bash -c "cd $PWD; source scripts/dev/gpu_table1_x4.sh lib; export CUDA_VISIBLE_DEVICES=$gpu
       /usr/bin/time -f 'wall %e s, peak rss %M kB' $(cores $((gpu * 4)) $((gpu * 4 + 3))) python3 -m ttmjx ablate $abl \
         --scale $SCALE --seeds $SEEDS --cells $cells --trajectories $TRAJ ${SET:+--set $SET} --out $T/$abl 2>&1 | stdbuf -oL tr '\r' '\n' \
         | grep --line-buffered -v 'traj/s\|throw/s\|absl\|^\s*$' > $T/$job.log

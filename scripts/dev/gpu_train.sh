@@ -2,7 +2,7 @@
 # On the lent GPU machine: train several runs side by side (one process each; MJX rollouts are
 # latency-bound, so runs share one GPU well), each stopped by SIGTERM after SECONDS (it saves a
 # checkpoint; the same command resumes it on a warm machine).
-#   bash scripts/gpu_train.sh SECONDS NAME=PRESET[:extra args] ...   -> runs/NAME, $OUT/NAME_*
+#   bash scripts/dev/gpu_train.sh SECONDS NAME=PRESET[:extra args] ...   -> runs/NAME, $OUT/NAME_*
 set -uo pipefail
 python3 -m pip install -q --no-deps --no-index .wheels/*.whl 2>&1 | grep -v -i warn | tail -2
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false TTMJX_JAX_CACHE=$PWD/.jax_cache

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # On the lent GPU machine (device tool), from the repository root: issue #25's baseline cells.
-#   bash scripts/gpu_baselines.sh PROFILE_S "METHOD:SEEDS:LIMIT_S" ...
-# e.g. bash scripts/gpu_baselines.sh 90 ppo:5:300 es:1:140
-# Profiles the environment pieces (scripts/baseline_profile.py, at most PROFILE_S seconds; 0
+#   bash scripts/dev/gpu_baselines.sh PROFILE_S "METHOD:SEEDS:LIMIT_S" ...
+# e.g. bash scripts/dev/gpu_baselines.sh 90 ppo:5:300 es:1:140
+# Profiles the environment pieces (scripts/dev/baseline_profile.py, at most PROFILE_S seconds; 0
 # skips it), then runs `ttmjx baseline METHOD --scale full --seeds SEEDS --out B/table1` for
 # each, each under its own limit (SIGTERM: finished cells are kept, a cut one is redone).
 # PARALLEL=1 runs the methods side by side (one process each) instead of one after another;
@@ -27,7 +27,7 @@ nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee -a "$OUT/lo
 PROFILE_S=$1; shift
 if [[ $PROFILE_S -gt 0 ]]; then
   echo "=== profile $(date +%T)" | tee -a "$OUT/log.txt"
-  timeout "$PROFILE_S" python3 scripts/baseline_profile.py 2>>"$OUT/log.txt" | tee "$OUT/profile.json"
+  timeout "$PROFILE_S" python3 scripts/dev/baseline_profile.py 2>>"$OUT/log.txt" | tee "$OUT/profile.json"
 fi
 one() {
   IFS=: read -r m s lim <<<"$1"
@@ -43,5 +43,5 @@ for spec in "$@"; do
 done
 for p in "${pids[@]}"; do wait "$p"; done
 kill $PACKER 2>/dev/null; pack
-python3 scripts/baseline_timing.py "$B/table1" | tee -a "$OUT/log.txt"
+python3 scripts/dev/baseline_timing.py "$B/table1" | tee -a "$OUT/log.txt"
 echo "=== done $(date +%T)" | tee -a "$OUT/log.txt"

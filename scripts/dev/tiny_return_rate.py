@@ -1,7 +1,7 @@
 """Return rate of the tests' recorded tiny run on N narrow throws (tests/test_trainer.py's
 learning test, on more throws): how far float rounding on this processor moves its outcome.
 
-    python scripts/tiny_return_rate.py RUN_DIR DEMO_DIR [--n 1024]
+    python scripts/dev/tiny_return_rate.py RUN_DIR DEMO_DIR [--n 1024]
 
 RUN_DIR and DEMO_DIR: the session fixtures `recorded_tiny_run` and `oracle_demos` of a test run
 (e.g. /tmp/pytest-of-$USER/pytest-current/recorded_tiny_run0 and .../oracle_demos0)."""
@@ -12,7 +12,7 @@ import sys
 import jax
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests"))
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "tests"))
 from recorded import tiny_recorded  # noqa: E402
 
 from eval.evaluate import rollout_goals  # noqa: E402

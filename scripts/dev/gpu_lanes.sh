@@ -4,8 +4,8 @@
 # (setsid), so calls that follow while the machine is warm keep watching them and RL cells
 # resume inside the lease; TESTS=1 also runs the README's test command on the host's CPU.
 #   LANES="0:es5:baseline+es+--seeds+5+--out+/tmp/lanes/bl 1:sac5:baseline+sac+--seeds+5+--out+/tmp/lanes/bl" \
-#     bash scripts/gpu_lanes.sh start WAIT_S      # first call: install, launch, then watch
-#   bash scripts/gpu_lanes.sh wait WAIT_S         # later calls: keep watching (the lanes started)
+#     bash scripts/dev/gpu_lanes.sh start WAIT_S      # first call: install, launch, then watch
+#   bash scripts/dev/gpu_lanes.sh wait WAIT_S         # later calls: keep watching (the lanes started)
 # A lane spec is GPU:NAME:ARGS, ARGS the ttmjx command line with '+' for spaces; specs of one GPU
 # run in the order given. After an `ablate` spec with --out, its finished cells are evaluated on
 # eval/goals/edges_net.csv into edges/ (scripts/table1_figures.py reads them). Each call leaves
@@ -59,7 +59,7 @@ if [[ $mode == start ]]; then
   printf '%s\n' $LANES | cut -d: -f1 | sort -u | wc -l > "$T/lanes.n"; echo "$TESTS" > "$T/tests.n"
   for gpu in $(printf '%s\n' $LANES | cut -d: -f1 | sort -u); do
     specs=$(printf '%s\n' $LANES | grep "^$gpu:" | tr '\n' ' ')
-    setsid bash -c "cd $PWD; source scripts/gpu_lanes.sh lib; lane $gpu $specs; touch $T/lane$gpu.done" \
+    setsid bash -c "cd $PWD; source scripts/dev/gpu_lanes.sh lib; lane $gpu $specs; touch $T/lane$gpu.done" \
       </dev/null >/dev/null 2>&1 &
   done
   if (( TESTS )); then   # the README's test command, JAX on the CPU, on another x86-64 make

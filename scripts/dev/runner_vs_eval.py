@@ -7,8 +7,8 @@ deploy.robot.runner.Runner on the simulated station (deploy.sim.station) toward 
 same throws, from the same start poses. Per episode: the first step whose frame or command
 differs, hit, landing; in all: the goal metrics of both and the fraction on the opponent's half.
 
-    python scripts/runner_vs_eval.py RUN --n 100 --timing zero --start launch --json
-    python scripts/runner_vs_eval.py RUN --n 100 --timing nominal --start trigger --pose home --charge-compute
+    python scripts/dev/runner_vs_eval.py RUN --n 100 --timing zero --start launch --json
+    python scripts/dev/runner_vs_eval.py RUN --n 100 --timing nominal --start trigger --pose home --charge-compute
 
 --timing zero: ideal sensors (deploy.sim.station.TIMING); --start launch: tick 0 at the launch (the
 station announces it), as the simulation's episodes start; trigger: at the runner's ball
