@@ -81,6 +81,10 @@ SLOW_ELSEWHERE = (
     "test_sharding.py::test_a_four_device_checkpoint_resumes_on_one_device",
     "test_sharding.py::test_counts_that_cannot_be_placed_are_refused_before_compiling",
     "test_ablate.py::test_tiny_demos_ablation_end_to_end_resumes_and_skips",
+    "test_lanes.py::test_arms_that_differ_in_data_share_one_program",      # with the next three: the
+    "test_lanes.py::test_lane_k_is_that_arm_alone",                          # one_program fixture (152 s)
+    "test_lanes.py::test_lanes_over_four_devices_compute_what_one_device_does",   # 171 s
+    "test_lanes.py::test_from_json_keeps_the_lane_settings",
     "test_bad_input.py::test_sigterm_during_ablate_saves_the_cell_and_the_same_command_resumes",
     "test_bad_input.py::test_robot_run_out_interrupted_resumes_to_the_uninterrupted_session",
     "test_bad_input.py::test_an_interrupted_robot_sweep_goes_on_where_it_stopped",
