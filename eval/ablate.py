@@ -14,7 +14,8 @@ Cells are ordered seed-major (every variant of seed 0, then seed 1, ...) for --p
 The unfinished seeds of a variant train together as one program (training/seeds.py: the lane
 is a vmapped axis, laid over every local device or --devices of them), and so do variants that
 differ only in the settings a lane carries as data (practice on or off, learning rate, moving
-average: the practice ablation's goalseye and lfp-equal-updates) or in their demonstrations with
+average, practice noise scale: the practice ablation's goalseye and lfp-equal-updates; the noise
+ablation's off and bX) or in their demonstrations with
 the same schedule (demos d10/d100/d1000 at full scale); the other programs run one after another
 in the same process. Each cell keeps its own run directory and result, so it is the same experiment
 as when it ran alone.

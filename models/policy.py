@@ -141,9 +141,15 @@ def with_integrating_action_noise(policy: Policy, scale: float) -> Policy:
     """The paper's form as written ("New Results"): a + z on every target with the true joints
     observed, z held for the episode; the closed loop here integrates it (see with_action_noise).
     `ttmjx ablate noise` runs it as the paper-bX variants."""
+    return with_held_target_offset(policy, lambda params, key: uniform_offset(key, scale, params.norm.act_std))
+
+
+def with_held_target_offset(policy: Policy, draw: Callable) -> Policy:
+    """z = draw(params, key), once per episode, added to every target with the true joints
+    observed (the integrating form). The carry is (inner carry, z)."""
     def init(params, key):
         k_inner, k_noise = jax.random.split(key)
-        return policy.init(params, k_inner), uniform_offset(k_noise, scale, params.norm.act_std)
+        return policy.init(params, k_inner), draw(params, k_noise)
 
     def apply(params, carry, obs, key):
         inner, z = carry
@@ -151,3 +157,19 @@ def with_integrating_action_noise(policy: Policy, scale: float) -> Policy:
         return (inner, z), a + z
 
     return Policy(init, apply)
+
+
+class NoisyParams(NamedTuple):
+    """A policy's parameters with the scale b of its held action noise as data: for the lanes
+    of one program whose b differs (training.seeds). `scale` [] (or [N] beside an ensemble's [N]
+    leaves)."""
+    params: Any
+    scale: Any
+
+
+def with_lane_action_noise(policy: Policy, form: str) -> Policy:
+    """with_action_noise (form 'offset') or with_integrating_action_noise ('integrating') with b
+    read from NoisyParams instead of written in: the same draws and arithmetic, b = 0 exact."""
+    inner = Policy(lambda p, key: policy.init(p.params, key), lambda p, c, obs, key: policy.apply(p.params, c, obs, key))
+    draw = lambda p, key: uniform_offset(key, p.scale, p.params.norm.act_std)  # noqa: E731
+    return (with_joint_offset if form == "offset" else with_held_target_offset)(inner, draw)

@@ -1,5 +1,5 @@
 """A table as one program (training/seeds.py): lanes that differ in the settings an ablation
-varies as data (practice on or off, learning rate, moving average) train together, and lane k
+varies as data (practice on or off, learning rate, moving average, practice noise) train together, and lane k
 is the experiment that arm and seed run alone; the lanes laid over several devices (here 4
 simulated CPU devices, a separate process) compute the same numbers as on one."""
 import dataclasses
@@ -24,14 +24,17 @@ ITERATIONS = 3   # tiny: two pretraining chunks (the LFP evaluation after the se
 
 
 def lane_configs(demo_dir, root) -> list:
-    """Three lanes of one program: GoalsEye seed 0; LFP (practice off) seed 0; GoalsEye seed 1
-    at twice the learning rate with a moving average of decay 0.5."""
+    """Four lanes of one program: GoalsEye seed 0 (tiny's practice noise, b = 0.2); LFP (practice
+    off) seed 0; GoalsEye seed 1 at twice the learning rate, a moving average of decay 0.5 and
+    b = 0.1; GoalsEye seed 1 without practice noise."""
     base = dataclasses.replace(runconfig.tiny(), demo_dir=demo_dir, demo_source="oracle")
     return [dataclasses.replace(base, seed=0, run_dir=os.path.join(root, "goalseye-seed0")),
             dataclasses.replace(base, seed=0, practice=False, run_dir=os.path.join(root, "lfp-seed0")),
             dataclasses.replace(base, seed=1, run_dir=os.path.join(root, "fast-seed1"),
                                 train=dataclasses.replace(base.train, learning_rate=2 * base.train.learning_rate,
-                                                          ema_decay=0.5))]
+                                                          ema_decay=0.5, action_noise=0.1)),
+            dataclasses.replace(base, seed=1, run_dir=os.path.join(root, "quiet-seed1"),
+                                train=dataclasses.replace(base.train, action_noise=0.0))]
 
 
 def rows(run_dir):
@@ -87,10 +90,11 @@ def test_arms_that_differ_in_data_share_one_program(one_program):
         check_one_batch([cfgs[0], other])
 
 
-@pytest.mark.parametrize("lane", [1, 2], ids=["lfp", "learning-rate-and-average"])
+@pytest.mark.parametrize("lane", [1, 2, 3], ids=["lfp", "learning-rate-average-and-noise", "no-noise"])
 def test_lane_k_is_that_arm_alone(one_program, tmp_path, lane):
     """The LFP lane plays the round and keeps nothing, so it is LFP's train-only round; the
-    lane with its own learning rate and moving average is that run alone."""
+    lane with its own learning rate, moving average and noise scale is that run alone; the lane
+    at b = 0 explores as a run without noise (whose policy has no noise at all)."""
     _, cfgs = one_program
     alone = dataclasses.replace(cfgs[lane], run_dir=str(tmp_path / "alone"))
     Run(alone, evaluate=training_evaluation(alone), progress=False).run(max_iterations=ITERATIONS)
@@ -105,10 +109,10 @@ def test_lane_k_is_that_arm_alone(one_program, tmp_path, lane):
 
 
 def test_lanes_over_four_devices_compute_what_one_device_does(one_program, tmp_path):
-    """The same three lanes over 2 of 4 simulated CPU devices (padded to 4 lanes) in a fresh
+    """The same four lanes over 3 of 4 simulated CPU devices (padded to 6 lanes) in a fresh
     process: every lane's log and weights equal the one-device program's."""
     demo_dir, cfgs = one_program
-    spread = [dataclasses.replace(c, run_dir=str(tmp_path / os.path.basename(c.run_dir)), devices=2) for c in cfgs]
+    spread = [dataclasses.replace(c, run_dir=str(tmp_path / os.path.basename(c.run_dir)), devices=3) for c in cfgs]
     spec = tmp_path / "lanes.json"
     spec.write_text(json.dumps([to_json(c) for c in spread]))
     script = ("import json, sys; from training.runconfig import from_json; from training.seeds import SeedRuns; "
@@ -116,7 +120,7 @@ def test_lanes_over_four_devices_compute_what_one_device_does(one_program, tmp_p
               "assert jax.device_count() == 4, jax.devices(); "
               "cfgs = [from_json(d) for d in json.load(open(sys.argv[1]))]; "
               "r = SeedRuns(cfgs, training_evaluation_seeds(cfgs[0]), progress=False); "
-              "assert (r.devices, r.lanes) == (2, 4), (r.devices, r.lanes); "
+              "assert (r.devices, r.lanes) == (3, 6), (r.devices, r.lanes); "
               f"r.run(max_iterations={ITERATIONS})")
     env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4", "JAX_PLATFORMS": "cpu"}
     proc = subprocess.run([sys.executable, "-c", script, str(spec)], cwd=ROOT, env=env, capture_output=True,

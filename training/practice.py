@@ -24,7 +24,8 @@ import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 
 from models.config import PolicyConfig
-from models.policy import make_policy, with_action_noise, with_integrating_action_noise
+from models.policy import (NoisyParams, make_policy, with_action_noise, with_integrating_action_noise,
+                           with_lane_action_noise)
 from training.cache import Cache, add_episodes
 from training.config import TrainConfig
 from training.mesh import LANE, Layout, single_device
@@ -61,12 +62,16 @@ class RoundParts(NamedTuple):
     train: Callable      # (state, cache, key) -> (state, loss [N])
     place: Callable      # tree [M, ...] -> the same, laid out over the devices that play it
     block: int = 0       # episodes each ensemble member plays (M / N; 0: one policy)
+    noisy: bool = False  # the rollout policy reads its noise scale from NoisyParams (Knobs.action_noise)
 
 
-def practice_policy(pcfg: PolicyConfig, tcfg: TrainConfig):
+def practice_policy(pcfg: PolicyConfig, tcfg: TrainConfig, lane_noise: bool = False):
     """The rollout policy of practice: the member's policy plus held-per-episode action noise
-    (TrainConfig.action_noise_form)."""
+    (TrainConfig.action_noise_form); lane_noise: its scale read from the parameters
+    (NoisyParams), for lanes whose scale differs."""
     base = make_policy(pcfg)
+    if lane_noise:
+        return with_lane_action_noise(base, tcfg.action_noise_form)
     if tcfg.action_noise <= 0:
         return base
     noisy = with_action_noise if tcfg.action_noise_form == "offset" else with_integrating_action_noise
@@ -118,7 +123,12 @@ def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, thro
     knobs: the lane's TrainConfig settings as data (training.update.Knobs); None: the config's."""
     over = jax.vmap if seeds else (lambda f: f)
     k_goal, k_roll, k_train = over(round_keys)(key)
-    traj = parts.rollout(acting_params(state), k_roll, parts.place(throws), parts.place(parts.goals(k_goal)))
+    played = acting_params(state)
+    if parts.noisy:   # every member of a lane explores with the lane's b
+        b = jnp.asarray(knobs.action_noise)
+        members = jax.tree.leaves(played)[0].shape[b.ndim]
+        played = NoisyParams(played, jnp.broadcast_to(b[..., None], b.shape + (members,)))
+    traj = parts.rollout(played, k_roll, parts.place(throws), parts.place(parts.goals(k_goal)))
     new = parts.append(cache, traj, counted)
     members = traj.hit.shape[-1] // parts.block if parts.block else 1
     stats = over(lambda *a: practice_stats(*a, table, members))(jax.tree.map(jnp.asarray, traj), cache.count,
@@ -161,11 +171,14 @@ class Practice:
     built once here (the jit boundaries of training) and reused every round."""
 
     def __init__(self, world: World, pcfg: PolicyConfig, tcfg: TrainConfig, backend: Backend,
-                 episodes: int, train_steps: int, layout: Layout | None = None, seeds: int | None = None):
+                 episodes: int, train_steps: int, layout: Layout | None = None, seeds: int | None = None,
+                 lane_noise: bool = False):
         if episodes % tcfg.members:
             raise ValueError(f"episodes_per_ssp={episodes} must be a multiple of members={tcfg.members} "
                              f"(every member practises an equal share)")
         self.world, self.tcfg, self.backend, self.episodes = world, tcfg, backend, episodes
+        # lane_noise: lanes whose practice noise scale differs read it from their knobs
+        self.lane_noise = bool(seeds) and lane_noise
         self.layout = layout or single_device()
         # seeds=L: L independent runs (lanes) in one program; every state, cache, key and throw
         # carries a leading [L] axis, each compiled piece is the one-run piece vmapped over it,
@@ -181,7 +194,7 @@ class Practice:
         sample = lambda k: thrower.sample_throws(k, world, THROW_BLOCK * episodes)  # noqa: E731
         self._sample_throws = self.lanes(jax.vmap(sample)) if seeds else jax.jit(sample)
         self._bank = (None, None)
-        policy = practice_policy(pcfg, tcfg)
+        policy = practice_policy(pcfg, tcfg, self.lane_noise)
         pure = self._pure_parts(backend.rollout_fn(policy, members=tcfg.members)) if backend.kind.traceable else None
         self._round = self._compiled_round(pure) if pure else self._host_round(policy)
 
@@ -198,7 +211,7 @@ class Practice:
         train = self.train if not self.seeds else self.train_one
         return RoundParts(goals=lambda k: uniform_goals(k, m, world.table, goal_margin), rollout=rollout,
                           append=lambda c, t, n: add_episodes(c, t, world.table, keep_margin, counted=n), train=train,
-                          place=self.layout.constrain_throws, block=m // tcfg.members)
+                          place=self.layout.constrain_throws, block=m // tcfg.members, noisy=self.lane_noise)
 
     def _compiled_round(self, pure: RoundParts):
         """MJX: the whole round in one jit. The throws, goals and episodes are split over the

@@ -2,7 +2,7 @@
 
 A run is a function of (config, key); L runs (lanes) that differ only in their seed, in the
 settings an ablation varies as data (LANE_KNOBS: practice on or off, learning rate, moving
-average; training.update.Knobs) and, with the same schedule, in the demonstrations they start
+average, the practice noise's scale; training.update.Knobs) and, with the same schedule, in the demonstrations they start
 from (`program_key`), stack every array of their state (weights, optimizer states, moving
 averages, caches, keys, counters) on a leading [L] axis, and each compiled piece of training
 (the practice round, the update loop, the throw sampler, the evaluation rollout) is the one-run
@@ -58,7 +58,7 @@ EvaluateSeeds = Callable[..., list]
 PER_SEED = ("seed", "run_dir", "devices")
 PER_RUN_DATA = ("demos", "demo_source", "demo_dir")
 # Settings that are data of a lane (dotted config fields): the lanes of one program may differ in them.
-LANE_KNOBS = ("practice", "train.learning_rate", "train.ema_decay")
+LANE_KNOBS = ("practice", "train.learning_rate", "train.ema_decay", "train.action_noise")
 
 
 def program_fields(cfg: RunConfig) -> dict:
@@ -155,7 +155,8 @@ class SeedRuns:
         self.cfgs = cfgs + [cfgs[-1]] * (self.lanes - self.seeds)
         self.knobs = lane_knobs([c.train for c in self.cfgs])
         self.practice = Practice(cfg.world, cfg.policy, cfg.train, self.backend, cfg.episodes_per_ssp,
-                                 cfg.steps_between_ssp, self.layout, seeds=self.lanes)
+                                 cfg.steps_between_ssp, self.layout, seeds=self.lanes,
+                                 lane_noise=any(c.train.action_noise > 0 for c in cfgs))
         self._stop = 0
 
     # -- state ----------------------------------------------------------------------------

@@ -46,11 +46,13 @@ class Knobs(NamedTuple):
     learning_rate: Any
     ema_decay: Any
     ema_rate: Any
+    action_noise: Any     # b of practice's held action noise (training.practice)
 
 
 def knobs_of(tcfg: TrainConfig) -> Knobs:
     """One run's knobs: its config's values, as Python floats."""
-    return Knobs(float(tcfg.learning_rate), float(tcfg.ema_decay), 1.0 - float(tcfg.ema_decay))
+    return Knobs(float(tcfg.learning_rate), float(tcfg.ema_decay), 1.0 - float(tcfg.ema_decay),
+                 float(tcfg.action_noise))
 
 
 def lane_knobs(tcfgs) -> Knobs:
