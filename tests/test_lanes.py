@@ -160,3 +160,19 @@ def test_more_devices_than_there_are_is_refused_before_any_cell(tmp_path):
     assert proc.stderr.strip().splitlines()[-1] == (f"ttmjx ablate: error: --devices {n + 2} but only {n} cpu "
                                                    f"device(s) are available")
     assert not out.exists()
+
+
+def test_ablations_train_their_arms_that_differ_in_data_as_one_program(tmp_path):
+    """`ttmjx ablate practice`: GoalsEye and LFP at equal updates, every seed, are one program;
+    LFP at equal data (other demonstrations and schedule) and at r0.2's updates (another
+    schedule) are programs of their own. `ttmjx ablate noise`: off and the bX arms are one
+    program, the paper's integrating form another."""
+    from eval import ablate, table_cells
+
+    def groups(name):
+        out = str(tmp_path / name)
+        cells = ablate.plan(name, "tiny", 2, out)
+        return [sorted({c.variant for c in g}) for g in table_cells.seed_groups(cells, os.path.join(out, "results"))]
+
+    assert groups("practice") == [["goalseye", "lfp-equal-updates"], ["lfp-equal-data"], ["lfp-r0.2-updates"]]
+    assert groups("noise") == [["b0.05", "b0.1", "b0.2", "off"], ["paper-b0.05", "paper-b0.1", "paper-b0.2"]]
