@@ -204,3 +204,14 @@ def test_a_16_value_export_plays_with_the_trackers_velocity_and_its_extrapolatio
     np.testing.assert_allclose(obs[seen][:, observation.BALL_VEL], slope[seen], rtol=1e-4, atol=1e-3)
     s = (np.clip(x["t_grid"], t_lo, t_hi + 0.05) - t_lo) / np.where(seen, t_hi - t_lo, 1.0)
     np.testing.assert_allclose(observation.ball_pos(obs)[seen], (lo + s[:, None] * (hi - lo))[seen], atol=1e-5)
+
+
+def test_a_station_without_an_export_takes_a_named_profile_or_refuses_it():
+    """`ttmjx robot serve` without --policy: the named profile (nominal by default), an unknown
+    name refused with the choices."""
+    from deploy.robot.timing_check import profile_timing
+    from ttmjx.world.config import TIMING_PROFILES
+    assert profile_timing(None) == TIMING_PROFILES["nominal"]
+    assert all(profile_timing(n) == t for n, t in TIMING_PROFILES.items())
+    with pytest.raises(TimingError, match=r"unknown station timing profile .bogus.; expected one of zero, nominal"):
+        profile_timing("bogus")

@@ -732,12 +732,8 @@ def robot_serve(a: RobotServeArgs) -> None:
         cfg, contract = loaded.cfg, loaded.contract
         timing, timing_info = resolve_timing(loaded, a.timing, a.allow_untrained_timing)
     else:
-        from deploy.robot.timing_check import TimingError
-        from ttmjx.world.config import TIMING_PROFILES
-        name = a.timing or "nominal"
-        if name not in TIMING_PROFILES:
-            raise TimingError(f"unknown station timing profile {name!r}; expected one of {', '.join(TIMING_PROFILES)}")
-        timing = TIMING_PROFILES[name]
+        from deploy.robot.timing_check import profile_timing
+        timing = profile_timing(a.timing)
         cfg = World() if a.control_hz is None else World(control_hz=a.control_hz)
         contract = contract_from_world(cfg, cfg.control_hz)
         if a.distribution:

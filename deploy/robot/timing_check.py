@@ -94,6 +94,15 @@ def station_timing(record: dict, name: str | None = None) -> tuple[Timing, str]:
     return TIMING_PROFILES[name], name
 
 
+def profile_timing(name: str | None) -> Timing:
+    """A station's Timing when no export says what it was trained under: a TIMING_PROFILES name
+    (None: 'nominal'); TimingError naming the choices if unknown."""
+    name = name or "nominal"
+    if name not in TIMING_PROFILES:
+        raise TimingError(f"unknown station timing profile {name!r}; expected one of {', '.join(TIMING_PROFILES)}")
+    return TIMING_PROFILES[name]
+
+
 def _fmt(v) -> str:
     if v is None:
         return "every physics step"
