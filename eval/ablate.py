@@ -316,10 +316,17 @@ def plan(name: str, scale: str, seeds: int, out: str, spec: str | None = None,
     """The selected cells with their configurations, checked before anything is written: every
     variant config valid, every finished result computed with the config asked for now.
     `devices`: the devices each program's lanes are laid over (None: every local device)."""
-    return table_cells.planned_cells(out, select(name, cell_order(name, seeds), spec),
-                                     lambda v, seed, run_dir: dataclasses.replace(
-                                         variant_config(name, v, scale, seed, run_dir, trajectories, settings),
-                                         devices=devices))
+    cells = table_cells.planned_cells(out, select(name, cell_order(name, seeds), spec),
+                                      lambda v, seed, run_dir: dataclasses.replace(
+                                          variant_config(name, v, scale, seed, run_dir, trajectories, settings),
+                                          devices=devices))
+    practising = [c.config for c in cells if c.config.practice]
+    if practising and all(practice_iterations(c) == 0 for c in practising):
+        # a table of practice that practises nowhere measures nothing it names
+        least = min(c.demos for c in practising)
+        raise ValueError(f"--trajectories {practising[0].total_trajectories}: no cell of {name} would practise (each "
+                         f"has at least {least} demonstrations); expected more than {least}")
+    return cells
 
 
 def status(out: str, name: str, seeds: int) -> list[str]:

@@ -200,3 +200,14 @@ def test_settings_apply_to_every_cell_before_the_variants_own():
                       ("world.throws=any", "--set takes numbers")]:
         with pytest.raises(ValueError, match=says):
             ablate.variant_config("practice", "goalseye", "tiny", 0, "/tmp/x", None, (bad,))
+
+
+def test_a_budget_that_no_cell_practises_in_is_refused(tmp_path):
+    """`--trajectories 1`: every practising cell would stop at its demonstrations, so the table
+    would measure no practice; refused naming the flag, the value and the least that practises.
+    A budget where some cells practise (tiny's demos ablation: d1000 exceeds it) stays allowed."""
+    from eval import ablate
+    with pytest.raises(ValueError, match=r"^--trajectories 1: no cell of practice would practise \(each has at least "
+                                         r"200 demonstrations\); expected more than 200$"):
+        ablate.plan("practice", "tiny", 1, str(tmp_path / "p"), trajectories=1)
+    assert len(ablate.plan("demos", "tiny", 1, str(tmp_path / "d"))) == 4
