@@ -67,34 +67,14 @@ FIRST = ("test_baselines_loops.py", "test_trainer.py", "test_bad_input.py", "tes
          "test_export.py", "test_es.py", "test_cell_cli.py", "test_deploy_runner.py", "test_physics.py")
 
 
-# The slow set (`-m slow`, pyproject.toml; docs/BENCHMARKS.md "Ninth pass"): tests of modules
-# whose decorators are edited elsewhere, marked here by node id (a parametrized case by its id;
-# a test's name alone marks every case). The README's command runs the rest; CI (.ci/run) runs
+# The slow set (`-m slow`, pyproject.toml; docs/BENCHMARKS.md "Ninth pass"): marked with
+# @pytest.mark.slow in their modules, and here by node id the parametrized cases that are slow
+# where their siblings are not. The README's command runs the rest; CI (.ci/run) runs
 # both sets. Marked with @pytest.mark.slow in their own modules: test_baselines_loops (all),
 # test_baselines, test_trainer, test_qtopt, test_paper_bootstrap, test_timing, test_cli.
-SLOW_ELSEWHERE = (
-    "test_seeds.py::test_seed_k_of_a_batch_is_seed_k_alone",
-    "test_seeds.py::test_the_training_benchmark_times_every_piece_of_a_batched_round",
-    "test_sharding.py::test_one_device_is_the_mesh_of_one_and_computes_the_recorded_numbers",
-    "test_sharding.py::test_four_devices_reach_the_one_device_result",
-    "test_sharding.py::test_members_and_windows_are_split_and_the_pool_stays_put",
-    "test_sharding.py::test_a_four_device_checkpoint_resumes_on_one_device",
-    "test_sharding.py::test_counts_that_cannot_be_placed_are_refused_before_compiling",
-    "test_ablate.py::test_tiny_demos_ablation_end_to_end_resumes_and_skips",
-    "test_lanes.py::test_arms_that_differ_in_data_share_one_program",      # with the next three: the
-    "test_lanes.py::test_lane_k_is_that_arm_alone",                          # one_program fixture (152 s)
-    "test_lanes.py::test_lanes_over_four_devices_compute_what_one_device_does",   # 171 s
-    "test_lanes.py::test_from_json_keeps_the_lane_settings",
-    "test_bad_input.py::test_sigterm_during_ablate_saves_the_cell_and_the_same_command_resumes",
-    "test_bad_input.py::test_robot_run_out_interrupted_resumes_to_the_uninterrupted_session",
-    "test_bad_input.py::test_an_interrupted_robot_sweep_goes_on_where_it_stopped",
-    "test_bad_input.py::test_ctrl_c_during_robot_run_keeps_the_episodes_and_exits_130",
-    "test_bad_input.py::test_a_full_disk_during_a_checkpoint_is_one_line_naming_the_file",
-    "test_bad_input.py::test_demos_on_a_full_disk_names_the_file_and_leaves_nothing",
+SLOW_ELSEWHERE = (   # parametrized cases slow where the module's other cases are not
     "test_bad_input.py::test_a_damaged_config_json_is_repaired_from_the_checkpoint_on_resume[empty]",
     "test_bad_input.py::test_a_damaged_config_json_is_repaired_from_the_checkpoint_on_resume[deleted]",
-    "test_bad_input.py::test_a_torn_metrics_line_is_said_on_resume_and_the_rows_kept",
-    "test_bad_input.py::test_a_deleted_metrics_log_is_said_on_resume",
 )
 
 

@@ -119,6 +119,7 @@ def ablate_cli(*argv) -> tuple[dict, str]:
     return json.loads(out.getvalue().strip().splitlines()[-1]), out.getvalue() + err.getvalue()
 
 
+@pytest.mark.slow
 def test_tiny_demos_ablation_end_to_end_resumes_and_skips(tmp_path):
     out = str(tmp_path / "abl")
     argv = ["demos", "--scale", "tiny", "--seeds", "2", "--cells", "0:2", "--trajectories", "32", "--out", out]

@@ -429,6 +429,7 @@ def tiny_export(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_sigterm_during_ablate_saves_the_cell_and_the_same_command_resumes(tmp_path):
     """SIGTERM while a cell trains: its run saves a checkpoint, the command exits 143 naming it (no
     table yet is not an error), and the same command resumes the cell and finishes the table."""
@@ -455,6 +456,7 @@ def session_without_wall_time(path) -> dict:
     return {k: v for k, v in s.items() if k not in ("wall_s", "realtime_factor", "out")}
 
 
+@pytest.mark.slow
 def test_robot_run_out_interrupted_resumes_to_the_uninterrupted_session(tiny_export, tmp_path, capsys):
     """`ttmjx robot run --out DIR` stopped by SIGTERM keeps its episodes (exit 143); the same
     command resumes DIR (the logged episodes replayed and checked, not rewritten) and ends with
@@ -482,6 +484,7 @@ def test_robot_run_out_interrupted_resumes_to_the_uninterrupted_session(tiny_exp
     one_line_error(other, 2, "ttmjx robot run: error:", str(out), "another session", "seed")
 
 
+@pytest.mark.slow
 def test_an_interrupted_robot_sweep_goes_on_where_it_stopped(tiny_export, tmp_path):
     """sweep.json is written after every point; SIGTERM after the first, then the same command:
     only the missing points are played and the sweep is the uninterrupted one."""
@@ -501,6 +504,7 @@ def test_an_interrupted_robot_sweep_goes_on_where_it_stopped(tiny_export, tmp_pa
                    "another sweep", "goals")
 
 
+@pytest.mark.slow
 def test_ctrl_c_during_robot_run_keeps_the_episodes_and_exits_130(tiny_export, tmp_path):
     out = tmp_path / "logs"
     # 200 episodes: the signal lands mid-session however fast the machine plays them
@@ -717,6 +721,7 @@ def on_a_full_disk(argv: list[str], where: str, size_kb: int) -> subprocess.Comp
     return subprocess.run(argv, capture_output=True, text=True, timeout=300, env=env, cwd=ROOT, preexec_fn=limit)
 
 
+@pytest.mark.slow
 def test_a_full_disk_during_a_checkpoint_is_one_line_naming_the_file(oracle_demos, tmp_path):
     """Orbax's write failing for want of space: one line (not its ~120 lines of tracebacks) with
     the file and the checkpoint, exit 1; the same command runs on when there is space."""
@@ -754,6 +759,7 @@ def test_after_a_failed_save_stderr_passes_only_the_main_threads_writes(tmp_path
     assert buf.getvalue() == "ttmjx train: error: the one line\n"
 
 
+@pytest.mark.slow
 def test_demos_on_a_full_disk_names_the_file_and_leaves_nothing(tmp_path):
     """A dataset cut short by a full disk leaves no partial files: the same command runs again."""
     out = tmp_path / "d"
@@ -803,6 +809,7 @@ def test_an_emptied_checkpoints_dir_beside_old_metrics_is_refused_and_the_metric
     assert (run_dir / "metrics.jsonl").read_text() == before
 
 
+@pytest.mark.slow
 def test_a_torn_metrics_line_is_said_on_resume_and_the_rows_kept(recorded_tiny_run, oracle_demos, tmp_path):
     run_dir = tmp_path / "run"
     shutil.copytree(recorded_tiny_run[0], run_dir)
@@ -816,6 +823,7 @@ def test_a_torn_metrics_line_is_said_on_resume_and_the_rows_kept(recorded_tiny_r
     assert metrics.read_text() == whole
 
 
+@pytest.mark.slow
 def test_a_deleted_metrics_log_is_said_on_resume(recorded_tiny_run, oracle_demos, tmp_path):
     """A resumed run whose metrics.jsonl was deleted lost the rows before its checkpoint without
     a word: one warning line on stderr naming the file and the rows lost; the run goes on."""

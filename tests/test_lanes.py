@@ -79,6 +79,7 @@ def one_program(oracle_demos, tmp_path_factory):
     return oracle_demos, cfgs
 
 
+@pytest.mark.slow
 def test_arms_that_differ_in_data_share_one_program(one_program):
     _, cfgs = one_program
     check_one_batch(cfgs)
@@ -90,6 +91,7 @@ def test_arms_that_differ_in_data_share_one_program(one_program):
         check_one_batch([cfgs[0], other])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("lane", [1, 2, 3], ids=["lfp", "learning-rate-average-and-noise", "no-noise"])
 def test_lane_k_is_that_arm_alone(one_program, tmp_path, lane):
     """The LFP lane plays the round and keeps nothing, so it is LFP's train-only round; the
@@ -108,6 +110,7 @@ def test_lane_k_is_that_arm_alone(one_program, tmp_path, lane):
     assert (sizes[-1] == sizes[-2]) == (lane == 1)
 
 
+@pytest.mark.slow
 def test_lanes_over_four_devices_compute_what_one_device_does(one_program, tmp_path):
     """The same four lanes over 3 of 4 simulated CPU devices (padded to 6 lanes) in a fresh
     process: every lane's log and weights equal the one-device program's."""
@@ -144,6 +147,7 @@ def test_lane_padding_and_device_counts():
         mesh.lane_layout(3, n + 1)
 
 
+@pytest.mark.slow
 def test_from_json_keeps_the_lane_settings(one_program):
     _, cfgs = one_program
     assert from_json(to_json(cfgs[2])) == cfgs[2]

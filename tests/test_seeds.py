@@ -59,6 +59,7 @@ def test_a_batched_rollout_records_what_each_run_records_alone():
             np.testing.assert_array_equal(np.asarray(x)[s], np.asarray(y), err_msg=f"run {s}: {name}")
 
 
+@pytest.mark.slow
 def test_seed_k_of_a_batch_is_seed_k_alone(demo_dir, tmp_path, capsys):
     """Two pretraining chunks, the LFP evaluation and a practice round: every number a run logs,
     and its weights, are those of the same seed trained alone."""
@@ -185,6 +186,7 @@ def test_arms_that_differ_only_in_their_demonstrations_share_one_program(tmp_pat
         check_one_batch([arm(100, "a"), arm(150, "b")])      # 8 against 6 rounds
 
 
+@pytest.mark.slow
 def test_the_training_benchmark_times_every_piece_of_a_batched_round():
     """`ttmjx bench --train tiny --seeds 2`: every piece timed after its compiling call, the rates
     from the round, the projection from the preset's schedule."""

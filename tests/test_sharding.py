@@ -181,11 +181,13 @@ def assert_same_weights(a_dir, b_dir, step=None):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=WEIGHT_ATOL)
 
 
+@pytest.mark.slow
 def test_one_device_is_the_mesh_of_one_and_computes_the_recorded_numbers(runs):
     _, _, d1 = runs
     assert_reproduces_a_recording(rows(d1))
 
 
+@pytest.mark.slow
 def test_four_devices_reach_the_one_device_result(runs):
     """The same computation up to float reassociation while that is all that separates the two
     runs: pretraining and the first two practice rounds (iterations 0-3; their rollouts play
@@ -203,6 +205,7 @@ def test_four_devices_reach_the_one_device_result(runs):
     assert_same_weights(tmp / "d4", d1, step=DETERMINISTIC_ITERATIONS)
 
 
+@pytest.mark.slow
 def test_members_and_windows_are_split_and_the_pool_stays_put(runs):
     """tiny's 2 members on 4 devices: a (2 x 2) mesh, each member on 2 devices; the cache
     replicated. No compiled step moves more than one round's M new episodes between devices
@@ -219,6 +222,7 @@ def test_members_and_windows_are_split_and_the_pool_stays_put(runs):
     assert any(op == "all-gather" and s.startswith("f32[32,160,") for op, _, sh in p["mjx_round"] for s in sh)
 
 
+@pytest.mark.slow
 def test_a_four_device_checkpoint_resumes_on_one_device(runs, demo_dir, tmp_path):
     tmp, _, _ = runs
     from eval.evaluate import training_evaluation
@@ -237,6 +241,7 @@ def test_a_four_device_checkpoint_resumes_on_one_device(runs, demo_dir, tmp_path
     assert_same_weights(run_dir, tmp / "d4")
 
 
+@pytest.mark.slow
 def test_counts_that_cannot_be_placed_are_refused_before_compiling(runs, demo_dir, tmp_path):
     """One line naming the counts, before any compilation (the CLI exits 2 on ValueError)."""
     from training.trainer import Run
