@@ -5,15 +5,7 @@
 # over every device). Per-iteration seconds are in each lane's metrics.jsonl ("seconds").
 #   bash scripts/dev/gpu_lanes_scaling.sh      (carry .wheels)
 # Writes $OUT/lanes.tgz (every lane's metrics.jsonl and config.json) and $OUT/log.txt.
-set -uo pipefail
-if ls .wheels/*.whl >/dev/null 2>&1 && ! python3 -c "import mujoco, brax" 2>/dev/null; then
-  python3 -m pip install -q --no-deps --no-index .wheels/*.whl 2>&1 | grep -v -i warn | tail -2
-fi
-export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 TTMJX_JAX_CACHE=$PWD/.jax_cache XLA_PYTHON_CLIENT_PREALLOCATE=false
-OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"; R=/tmp/lanes; mkdir -p "$R"
-t0=$(date +%s)
-log() { echo "$(( $(date +%s) - t0 ))s $*" | tee -a "$OUT/log.txt"; }
-log "start $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | tr '\n' ' ')"
+source scripts/dev/device_setup.sh
 job() {  # name, visible GPUs, seeds, time limit
   local s=$(date +%s)
   CUDA_VISIBLE_DEVICES=$2 timeout -s TERM "$4" python3 -m ttmjx train --preset paper-sim-new --seeds "$3" \

@@ -5,16 +5,10 @@
 # (TTMJX_LANE_SPLIT=jit), then the 4 lanes on 1 GPU; each 1 pretraining chunk and 3 practice
 # rounds, Python's fault handler on (issue #45).
 #   bash scripts/dev/gpu_lanes_split.sh      (carry .wheels)
+# TTMJX_LANE_SPLIT chose the split when this ran (8f2a45f's parent); the code now always uses
+# jit's partitioner (training.practice.over_lanes), so both 4-GPU jobs run it today.
 # Writes $OUT/lanes.tgz (every lane's metrics.jsonl, each job's log) and $OUT/log.txt.
-set -uo pipefail
-if ls .wheels/*.whl >/dev/null 2>&1 && ! python3 -c "import mujoco, brax" 2>/dev/null; then
-  python3 -m pip install -q --no-deps --no-index .wheels/*.whl 2>&1 | grep -v -i warn | tail -2
-fi
-export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 TTMJX_JAX_CACHE=$PWD/.jax_cache XLA_PYTHON_CLIENT_PREALLOCATE=false
-OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"; R=/tmp/lanes; mkdir -p "$R"
-t0=$(date +%s)
-log() { echo "$(( $(date +%s) - t0 ))s $*" | tee -a "$OUT/log.txt"; }
-log "start $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | tr '\n' ' ')"
+source scripts/dev/device_setup.sh
 job() {  # name, visible GPUs, lane split, time limit
   local s=$(date +%s)
   CUDA_VISIBLE_DEVICES=$2 TTMJX_LANE_SPLIT=$3 timeout -s TERM "$4" python3 -X faulthandler -m ttmjx train \

@@ -9,17 +9,9 @@
 # Its first run (2026-11-28) lost its outputs: the 16 lanes ran 291 s, the ablation past the
 # call's limit, and the archive came last; now it is written on exit, and LIMITA is 200.
 # Writes $OUT/lanes.tgz (metrics.jsonl of every lane, the ablation's results and table, logs) and $OUT/log.txt.
-set -uo pipefail
-if ls .wheels/*.whl >/dev/null 2>&1 && ! python3 -c "import mujoco, brax" 2>/dev/null; then
-  python3 -m pip install -q --no-deps --no-index .wheels/*.whl 2>&1 | grep -v -i warn | tail -2
-fi
-export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 TTMJX_JAX_CACHE=$PWD/.jax_cache XLA_PYTHON_CLIENT_PREALLOCATE=false
-OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"; R=/tmp/lanes; mkdir -p "$R"
-t0=$(date +%s)
+source scripts/dev/device_setup.sh
 # Whatever happens (a step past the call's limit), what was written comes back.
 trap 'tar czf "$OUT/lanes.tgz" -C "$R" --exclude checkpoints --exclude tensorboard --exclude demos . 2>/dev/null' EXIT
-log() { echo "$(( $(date +%s) - t0 ))s $*" | tee -a "$OUT/log.txt"; }
-log "start $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | tr '\n' ' ')"
 s=$(date +%s)
 timeout -s TERM "${LIMIT16:-230}" python3 -m ttmjx train --preset paper-sim-new --seeds 16 --pretrain-steps 200 \
   --demos 400 --max-iterations 4 --run-dir "$R/lanes16" >"$R/lanes16.log" 2>&1
