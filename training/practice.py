@@ -133,7 +133,7 @@ def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, thro
     members = traj.hit.shape[-1] // parts.block if parts.block else 1
     stats = over(lambda *a: practice_stats(*a, table, members))(jax.tree.map(jnp.asarray, traj), cache.count,
                                                                new.count, counted)
-    state, loss = parts.train(state, new, k_train) if knobs is None else parts.train(state, new, k_train, knobs)
+    state, loss = parts.train(state, new, k_train, knobs)
     return state, new, loss, stats
 
 
