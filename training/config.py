@@ -6,6 +6,7 @@ import math
 from typing import Literal
 
 PRACTICE_KEEP = ("hits", "near_half")
+PRACTICE_GOALS = ("uniform", "frontier")   # where practice goals are drawn (training.frontier)
 NOISE_FORMS = ("offset", "integrating")    # how action noise is applied (training.practice)
 # Practice goals farther than this beyond the table's edges (m) are not goals a return can aim at
 # (the opponent's half is 1.37 m deep and 1.525 m wide).
@@ -32,6 +33,14 @@ class TrainConfig:
     # boundaries of the table improved performance in simulation by ~20% when the goal is less
     # than 20cm from the edges". The paper gives no margin; 0.2 m spans that band.
     practice_goal_margin: float = 0.2
+    # How practice goals are drawn: "uniform" over that region (the paper); "frontier", a share
+    # frontier_fraction of each round's goals moved to the least dense of the pool's achieved
+    # landings, jittered, within the same region (MEGA, arXiv 2007.02832; training.frontier): the
+    # goals just beyond what the policy reaches, where a uniform draw rarely aims (issue #44).
+    practice_goals: Literal[PRACTICE_GOALS] = "uniform"
+    # Share of each round's practice goals drawn from the frontier with practice_goals="frontier"
+    # (the rest stay uniform, so that every region keeps being practised).
+    frontier_fraction: float = 0.5
     # Which practice episodes join the cache: "hits", every hit ball with a landing (paper,
     # "Continuous improvement through self-supervised practice": an episode "is processed and
     # filtered out if ... the ball was not hit"); "near_half", only hits landing within
@@ -69,6 +78,11 @@ class TrainConfig:
                              f"in [0, {MAX_GOAL_MARGIN}] beyond the table's edges")
         if self.action_noise_form not in NOISE_FORMS:
             raise ValueError(f"TrainConfig.action_noise_form={self.action_noise_form!r}, expected one of {NOISE_FORMS}")
+        if self.practice_goals not in PRACTICE_GOALS:
+            raise ValueError(f"TrainConfig.practice_goals={self.practice_goals!r}, expected one of {PRACTICE_GOALS}")
+        if not 0.0 <= self.frontier_fraction <= 1.0:
+            raise ValueError(f"TrainConfig.frontier_fraction={self.frontier_fraction}, expected the share of each "
+                             f"round's practice goals drawn from the frontier, in [0, 1]")
         if self.practice_keep not in PRACTICE_KEEP:
             raise ValueError(f"TrainConfig.practice_keep={self.practice_keep!r}, expected one of {PRACTICE_KEEP}")
         if not 0.0 <= self.demo_fraction <= 1.0:

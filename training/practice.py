@@ -2,8 +2,10 @@
 relabel every hit with where the ball landed, append to the one shared cache, train S steps.
 
 Practice goals are uniform over the opponent's half extended TrainConfig.practice_goal_margin
-beyond the table's edges; which episodes join the cache is TrainConfig.practice_keep (every hit,
-as the paper, by default). The round's statistics use the world's one strict goal metric.
+beyond the table's edges, with TrainConfig.practice_goals="frontier" a share of them moved to the
+pool's frontier (training.frontier); which episodes join the cache is TrainConfig.practice_keep
+(every hit, as the paper, by default). The round's statistics use the world's one strict goal
+metric.
 
 `practice_round` is the round, written once. On MJX all of it is pure and `Practice` compiles it
 as ONE jit-compiled function; on a CPU the rollouts step MuJoCo C on the host, so the same
@@ -28,6 +30,7 @@ from models.policy import (NoisyParams, make_policy, with_action_noise, with_int
                            with_lane_action_noise)
 from training.cache import Cache, add_episodes
 from training.config import TrainConfig
+from training.frontier import with_frontier
 from training.mesh import LANE, Layout, single_device
 from training.update import (Knobs, TrainState, acting_params, knobs_of, lane_knobs, make_train_loop, state_sharding,
                              train_loop_fn)
@@ -56,13 +59,17 @@ class PracticeStats(NamedTuple):
 
 class RoundParts(NamedTuple):
     """The steps of a round, compiled or not as the backend allows."""
-    goals: Callable      # key -> [M, 2]
+    goals: Callable      # key -> [M, 2], the uniform draw
     rollout: Callable    # (params, key, throws [M], goals [M, 2]) -> Trajectories
     append: Callable     # (cache, traj, counted) -> cache
     train: Callable      # (state, cache, key) -> (state, loss [N])
     place: Callable      # tree [M, ...] -> the same, laid out over the devices that play it
     block: int = 0       # episodes each ensemble member plays (M / N; 0: one policy)
     noisy: bool = False  # the rollout policy reads its noise scale from NoisyParams (Knobs.action_noise)
+    # (key, cache, goals [M, 2]) -> [M, 2]: a share of the drawn goals moved to the pool's
+    # frontier (training.frontier); None: the draw as it is, bit for bit. A step of its own, not
+    # part of `goals`, which subclasses replace with key -> [M, 2] (training.bootstrap_paper).
+    frontier: Callable | None = None
 
 
 def practice_policy(pcfg: PolicyConfig, tcfg: TrainConfig, lane_noise: bool = False):
@@ -128,7 +135,10 @@ def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, thro
         b = jnp.asarray(knobs.action_noise)
         members = jax.tree.leaves(played)[0].shape[b.ndim]
         played = NoisyParams(played, jnp.broadcast_to(b[..., None], b.shape + (members,)))
-    traj = parts.rollout(played, k_roll, parts.place(throws), parts.place(parts.goals(k_goal)))
+    goals = parts.goals(k_goal)
+    if parts.frontier is not None:
+        goals = parts.frontier(k_goal, cache, goals)
+    traj = parts.rollout(played, k_roll, parts.place(throws), parts.place(goals))
     new = parts.append(cache, traj, counted)
     members = traj.hit.shape[-1] // parts.block if parts.block else 1
     stats = over(lambda *a: practice_stats(*a, table, members))(jax.tree.map(jnp.asarray, traj), cache.count,
@@ -203,7 +213,8 @@ class Practice:
         return over_lanes(fn, self.layout)
 
     def _pure_parts(self, rollout) -> RoundParts:
-        """Practice goals beyond the table by practice_goal_margin; kept episodes by practice_keep."""
+        """Practice goals beyond the table by practice_goal_margin, some at the pool's frontier by
+        practice_goals; kept episodes by practice_keep."""
         world, m, tcfg = self.world, self.episodes, self.tcfg
         goal_margin, keep_margin = tcfg.practice_goal_margin, tcfg.practice_keep_margin
         # With seeds, the MJX round is vmapped whole: its parts are one run's (train_one, not the
@@ -211,7 +222,15 @@ class Practice:
         train = self.train if not self.seeds else self.train_one
         return RoundParts(goals=lambda k: uniform_goals(k, m, world.table, goal_margin), rollout=rollout,
                           append=lambda c, t, n: add_episodes(c, t, world.table, keep_margin, counted=n), train=train,
-                          place=self.layout.constrain_throws, block=m // tcfg.members, noisy=self.lane_noise)
+                          place=self.layout.constrain_throws, block=m // tcfg.members, noisy=self.lane_noise,
+                          frontier=self._frontier())
+
+    def _frontier(self) -> Callable | None:
+        """RoundParts.frontier of the config: None for uniform practice goals."""
+        tcfg, table = self.tcfg, self.world.table
+        if tcfg.practice_goals != "frontier":
+            return None
+        return lambda k, c, g: with_frontier(k, c, g, tcfg.frontier_fraction, table, tcfg.practice_goal_margin)
 
     def _compiled_round(self, pure: RoundParts):
         """MJX: the whole round in one jit. The throws, goals and episodes are split over the
@@ -232,12 +251,14 @@ class Practice:
         if self.seeds:
             parts = pure._replace(
                 goals=self.lanes(jax.vmap(pure.goals)), append=self.lanes(jax.vmap(pure.append)), train=self.train,
+                frontier=pure.frontier and self.lanes(jax.vmap(pure.frontier)),
                 rollout=lambda p, k, th, g: backend.rollout_seeds(policy, p, k, th, g, members=members),
                 place=lambda tree: tree)
             return lambda s, c, k, th, n, kn: practice_round(parts, s, c, k, th, n, self.world.table, seeds=True,
                                                              knobs=kn)
         parts = pure._replace(
             goals=jax.jit(pure.goals), append=jax.jit(pure.append, out_shardings=lay.replicated),
+            frontier=pure.frontier and jax.jit(pure.frontier),
             rollout=lambda p, k, th, g: backend.rollout(policy, lay.local(p), k, th, g, members=members),
             place=lambda tree: tree)
         return lambda *a: practice_round(parts, *a, self.world.table)
