@@ -1,6 +1,7 @@
 """Why a run learns or not (`ttmjx report RUN`): per practice round, where the pool's landings
 lie (demonstrations and practice apart), success and "good per 100" by goal region, each
-ensemble member against the ensemble, and the training loss; a JSON record and one figure.
+ensemble member against the ensemble, the training loss and the loss on held-out
+demonstrations (eval.heldout, where the run logged it); a JSON record and one figure.
 
 Everything is read from what the run wrote: metrics.jsonl (the practice statistics and
 evaluations by region and member, training.practice.stats_row and eval.evaluate.with_regions)
@@ -90,7 +91,8 @@ def _table_of(config: dict) -> Table:
 
 
 def summarize(rec: RunRecord) -> dict:
-    """The report's JSON: per practice round, the evaluations, and the pool."""
+    """The report's JSON: per practice round, the evaluations (with the loss on held-out
+    demonstrations where the run logged it, `heldout` saying which or why not), and the pool."""
     table = _table_of(rec.config)
     practice = [r for r in rec.rows if r.get("phase") == "practice"]
     members = sorted({k for r in rec.rows for k in r if "member" in k})
@@ -117,13 +119,28 @@ def summarize(rec: RunRecord) -> dict:
             "pool": {"demonstrations": len(demo_goals), "practice": len(prac_goals),
                      "demonstration_landings": region_shares(demo_goals, table),
                      "practice_landings": region_shares(prac_goals, table)},
-            "rounds": rounds, "evaluations": evaluations}
+            "rounds": rounds, "evaluations": evaluations, "heldout": heldout_note(rec.config, evaluations)}
+
+
+def heldout_note(config: dict, evaluations: list[dict]) -> dict:
+    """Whether the evaluations carry the loss on held-out demonstrations (`heldout_loss`), and
+    which demonstrations those are, or why there is none."""
+    from eval.heldout import HELDOUT_DEMOS, HELDOUT_SEED_OFFSET
+    if not config.get("demos"):
+        return {"logged": False, "why": "the run has no demonstrations (demos = 0, as GCSL): none to hold out"}
+    if not any(e.get("heldout_loss") is not None for e in evaluations):
+        return {"logged": False, "why": "not in the run's metrics: its evaluation did not compute it "
+                                        "(eval.evaluate.training_evaluation(cfg, heldout=True))"}
+    return {"logged": True, "demonstrations": HELDOUT_DEMOS, "source": config.get("demo_source"),
+            "seed": config["seed"] + HELDOUT_SEED_OFFSET,
+            "what": "the update's loss (normalized MSE) on demonstrations of the run's source never in its pool"}
 
 
 def plot_report(rec: RunRecord, summary: dict, png: str) -> str:
     """Six panels: evaluation success by goal region; practice good-per-100 by region; members
     alone against the ensemble; the pool's landing density, demonstrations and practice; the
-    pool's landing shares by region over the rounds, with the training loss."""
+    pool's landing shares by region over the rounds, with the training loss and the loss on
+    held-out demonstrations (or why the run has none)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -154,7 +171,7 @@ def plot_report(rec: RunRecord, summary: dict, png: str) -> str:
     a = ax[0, 2]
     ex = [e["trajectories"] for e in ev]
     a.plot(ex, [100 * e["within_30cm"] for e in ev], "ko-", lw=2, label="ensemble (evaluation)")
-    n_members = len([k for k in (ev[-1] if ev else {}) if k.startswith("member")])
+    n_members = len([k for k in (ev[-1] if ev else {}) if k.startswith("member") and k.endswith("_30cm")])
     for i in range(n_members):
         a.plot(ex, [100 * _num(e.get(f"member{i}_30cm")) for e in ev], "o--", ms=3, label=f"member {i} alone")
         a.plot(x, [100 * _num(r.get(f"member{i}_30cm")) for r in rounds], "-", lw=0.6, alpha=0.6,
@@ -179,7 +196,12 @@ def plot_report(rec: RunRecord, summary: dict, png: str) -> str:
     a.set_xlabel("total trajectories"), a.set_ylabel("% of the pool"), a.grid(alpha=0.3)
     b = a.twinx()
     b.plot(x, [r["loss"] for r in rounds], "k:", lw=1, label="training loss")
-    b.set_ylabel("training loss (normalized MSE)")
+    held = summary["heldout"]
+    if held["logged"]:
+        b.plot(ex, [_num(e.get("heldout_loss")) for e in ev], "ks--", ms=4, lw=1, label="held-out demonstrations")
+    else:
+        a.text(0.02, 0.02, f"no held-out loss: {held['why']}", transform=a.transAxes, fontsize=6, wrap=True)
+    b.set_ylabel("loss (normalized MSE)")
     a.legend(fontsize=7, loc="upper left"), b.legend(fontsize=7, loc="upper right")
     for a in ax[0]:
         a.set_xlabel("total trajectories (demonstrations + practice)")

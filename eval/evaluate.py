@@ -9,6 +9,7 @@ import math
 import jax
 import numpy as np
 
+from eval.heldout import with_heldout_loss, with_heldout_loss_seeds
 from eval.report import check_out_dir, write_eval_dir
 from models.config import PolicyConfig
 from models.policy import ensemble_size, make_policy, member
@@ -122,26 +123,29 @@ def with_regions(metrics: dict, tr: Trajectories, table, members: int | None = N
     return out
 
 
-def training_evaluation(cfg):
+def training_evaluation(cfg, heldout: bool = False):
     """The evaluation a training run calls (training.trainer.Run's `evaluate`): cfg.eval_goals
-    uniform goals, the whole ensemble playing, with success by goal region. (params, backend,
-    key) -> metrics."""
+    uniform goals, the whole ensemble playing, with success by goal region; heldout=True adds
+    the loss on held-out demonstrations (eval.heldout: `heldout_loss`, `member<i>_heldout_loss`;
+    none without demonstrations). (params, backend, key) -> metrics."""
     def evaluate(params, backend: Backend, key) -> dict:
         metrics, tr = uniform_run(cfg.world, cfg.policy, params, backend, key, cfg.eval_goals,
                                   members=cfg.train.members)
         return with_regions(metrics, tr, cfg.world.table, cfg.train.members)
-    return evaluate
+    return with_heldout_loss(cfg, evaluate) if heldout else evaluate
 
 
-def training_evaluation_seeds(cfg):
+def training_evaluation_seeds(cfg, heldout: list | None = None):
     """training_evaluation for the seeds of a batch (training.seeds.SeedRuns): (params [S, ...],
-    backend, keys [S]) -> [metrics] per seed, every seed's goals and throws as if it ran alone."""
+    backend, keys [S]) -> [metrics] per seed, every seed's goals and throws as if it ran alone.
+    heldout: the batch's run configs in lane order (training.seeds.seed_configs), to add each
+    run's loss on its own held-out demonstrations (eval.heldout); None: none."""
     def evaluate(params, backend: Backend, keys) -> list[dict]:
         metrics, tr = uniform_runs(cfg.world, cfg.policy, params, backend, keys, cfg.eval_goals,
                                    members=cfg.train.members)
         return [with_regions(m, Trajectories(*(x[s] for x in tr)), cfg.world.table, cfg.train.members)
                 for s, m in enumerate(metrics)]
-    return evaluate
+    return evaluate if heldout is None else with_heldout_loss_seeds(heldout, evaluate)
 
 
 def evaluate_checkpoint(path: str, goals: str = "200", per_goal: int = 40, distribution: str | None = None,
