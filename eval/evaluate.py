@@ -19,9 +19,9 @@ from ttmjx.world import thrower
 from ttmjx.world.backends import Backend, resolve_backend
 from ttmjx.world.config import THROW_DISTRIBUTIONS, World
 from ttmjx.world.env import uniform_goals
-from ttmjx.world.goalfile import is_goal_file, read_goal_file
 from ttmjx.world.goals import (GOAL_REGIONS, five_goals, goal_metrics, member_success, per_goal_metrics,
                                region_success)
+from ttmjx.world.goalspec import GoalSpec, goal_spec
 from ttmjx.world.record import Trajectories
 
 
@@ -148,15 +148,18 @@ def training_evaluation_seeds(cfg, heldout: list | None = None):
     return evaluate if heldout is None else with_heldout_loss_seeds(heldout, evaluate)
 
 
+EVAL_UNIFORM_GOALS = 200     # `--goals uniform`: as many uniform goals as `ttmjx eval`'s default
+
+
 def evaluate_checkpoint(path: str, goals: str = "200", per_goal: int = 40, distribution: str | None = None,
                         backend: str | None = None, seed: int = 1234, member_index: int | None = None,
                         step: int | None = None, out: str | None = None) -> dict:
-    """`ttmjx eval`: metrics of a run's checkpoint (its moving-average policy) on `goals`: a number
-    of uniform goals, 'five' (per_goal attempts at each of A-E) or a goal file (ttmjx.world.goalfile, one
-    attempt per goal); throws of the run's distribution or `distribution`; one member alone with
-    member_index. With `out`, the metrics, one row per episode and the ball tracks are written
-    there (eval.report)."""
-    n_goals = None if is_goal_file(goals) else _goal_count(goals)
+    """`ttmjx eval`: metrics of a run's checkpoint (its moving-average policy) on `goals`, a
+    --goals value (deploy.robot.goals, the one grammar `ttmjx robot run` reads too): N uniform
+    goals ('uniform': EVAL_UNIFORM_GOALS), 'five' (per_goal attempts at each of A-E), or goals
+    inline or in a goal file (one attempt each); throws of the run's distribution or
+    `distribution`; one member alone with member_index. With `out`, the metrics, one row per
+    episode and the ball tracks are written there (eval.report)."""
     if distribution is not None and distribution not in THROW_DISTRIBUTIONS:
         raise ValueError(f"distribution {distribution!r}; expected one of {THROW_DISTRIBUTIONS}")
     if out is not None:
@@ -164,10 +167,8 @@ def evaluate_checkpoint(path: str, goals: str = "200", per_goal: int = 40, distr
     loaded = load_checkpoint(path, step)
     cfg = loaded.cfg
     world = cfg.world if distribution is None else cfg.world.with_throws(distribution)
-    goal_set = read_goal_file(goals, world.table) if is_goal_file(goals) else None
-    if goal_set is not None and len(goal_set) > episodes_that_fit(World()):
-        raise ValueError(f"goal file {goals!r} holds {len(goal_set)} goals; expected at most "
-                         f"{episodes_that_fit(World())} (what fits in this device's memory)")
+    # explicit goals lie on this run's table; counts are bounded by what fits in this device's memory
+    spec = goal_spec(goals, world.table, most=episodes_that_fit(World()))
     be = Backend(world, resolve_backend(backend or cfg.backend))
     members, params = cfg.train.members, loaded.params
     if member_index is not None:
@@ -175,13 +176,7 @@ def evaluate_checkpoint(path: str, goals: str = "200", per_goal: int = 40, distr
             raise ValueError(f"--member {member_index} is out of range: the run has {members} members")
         members, params = None, member(params, member_index)
     key = jax.random.PRNGKey(seed)
-    names = None      # the goals and rollout keys of goal_set_run, five_run and uniform_run
-    if goal_set is not None:
-        goals, k_run = goal_set_plan(key, goal_set)
-    elif n_goals is None:
-        (goals, names), k_run = five_goals(per_goal), key
-    else:
-        goals, k_run = uniform_plan(world, key, n_goals)
+    goals, names, k_run = eval_plan(spec, world, key, per_goal)
     # With --out the rollout also carries the true ball (tracks.npz); the record is the same.
     played = rollout_goals(world, cfg.policy, params, be, k_run, goals, members, truth=out is not None)
     tr, true = played if out is not None else (played, None)
@@ -195,16 +190,15 @@ def evaluate_checkpoint(path: str, goals: str = "200", per_goal: int = 40, distr
     return res
 
 
-def _goal_count(goals: str) -> int | None:
-    """'five' -> None; a positive number of uniform goals (at most what fits in memory) -> that number."""
-    if goals == "five":
-        return None
-    try:
-        n = int(goals)
-    except ValueError:
-        raise ValueError(f"--goals {goals!r}: expected a number of uniform goals, 'five', or a goal file "
-                         f"(.csv with a header row x,y, or .npy of shape [N, 2])") from None
-    most = episodes_that_fit(World())
-    if not 1 <= n <= most:
-        raise ValueError(f"--goals {n}: expected between 1 and {most} (what fits in this device's memory)")
-    return n
+def eval_plan(spec: GoalSpec, world: World, key, per_goal: int):
+    """(goals [N, 2], their names for 'five' else None, the rollout key) of a parsed --goals value:
+    the goals and keys of uniform_run, five_run and goal_set_run, so `ttmjx eval` scores what
+    they score."""
+    if spec.kind == "five":
+        goals, names = five_goals(per_goal)
+        return goals, names, key
+    if spec.kind == "points":
+        goals, k_run = goal_set_plan(key, spec.goals)
+        return goals, None, k_run
+    goals, k_run = uniform_plan(world, key, spec.count or EVAL_UNIFORM_GOALS)
+    return goals, None, k_run

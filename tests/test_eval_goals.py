@@ -216,3 +216,73 @@ def test_an_ensemble_that_does_not_divide_the_goals_plays_each_goal_and_throw_on
     np.testing.assert_array_equal(three.launch_vel, one.launch_vel)
     metrics, tr = uniform_run(world, pcfg, ens, backend, jax.random.PRNGKey(3), 4, members=3)
     assert metrics["goals"] == 4 and len(tr.goal) == 4
+
+
+# -- one --goals grammar for `ttmjx eval` and `ttmjx robot run` (ttmjx.world.goalspec) -----------
+INLINE = "0.7,0.3;0.4,-0.5"
+
+
+def test_the_grammar_reads_every_form_once_for_both_commands(tmp_path):
+    from ttmjx.world.goalspec import goal_spec
+    csv_path, npy_path = write_goals(tmp_path, np.float32([[0.7, 0.3], [0.4, -0.5]]))
+    assert goal_spec("12") == ("uniform", 12, None) and goal_spec("uniform") == ("uniform", None, None)
+    assert goal_spec("five") == ("five", None, None)
+    for value in (INLINE, "0.7 0.3; 0.4 -0.5", csv_path, npy_path):
+        spec = goal_spec(value)
+        assert spec.kind == "points", value
+        np.testing.assert_array_equal(spec.goals, np.float32([[0.7, 0.3], [0.4, -0.5]]))
+
+
+def robot_goals(tmp_path, value, n) -> np.ndarray:
+    """The goals `ttmjx robot run --station fake --goals VALUE --n N --out DIR` played, from its logs."""
+    from deploy.robot.episode_log import load_episode
+    out = tmp_path / f"robot{len(os.listdir(tmp_path))}"
+    printed = cli_json("robot", "run", "--station", "fake", "--goals", value, "--n", str(n), "--out", str(out), "--json")
+    names = sorted(f[:-len(".meta.json")] for f in os.listdir(out) if f.startswith("episode_") and f.endswith(".meta.json"))
+    assert printed["episodes"] == len(names)
+    return np.float32([load_episode(str(out), name).meta["goal"] for name in names])
+
+
+def test_robot_run_plays_every_form(tmp_path):
+    from deploy.robot.goals import uniform_session_goals
+    from ttmjx.world.goals import five_goals
+    csv_path, npy_path = write_goals(tmp_path, np.float32([[0.7, 0.3], [0.4, -0.5]]))
+    twice = np.float32([[0.7, 0.3], [0.7, 0.3], [0.4, -0.5], [0.4, -0.5]])       # --n 2: each goal twice
+    for value in (INLINE, csv_path, npy_path):
+        np.testing.assert_allclose(robot_goals(tmp_path, value, 2), twice, atol=1e-6)
+    np.testing.assert_allclose(robot_goals(tmp_path, "3", 2), np.repeat(uniform_session_goals(3), 2, 0), atol=1e-6)
+    np.testing.assert_allclose(robot_goals(tmp_path, "uniform", 2), uniform_session_goals(2), atol=1e-6)
+    np.testing.assert_allclose(robot_goals(tmp_path, "five", 1), five_goals(1)[0], atol=1e-6)
+
+
+def test_eval_plays_every_form():
+    """N and 'uniform' (200) are the same uniform draw; inline goals are a goal file's goals on
+    its throws; 'five' its goals A-E."""
+    assert cli_json("eval", RUN, "--goals", "uniform", "--seed", "2", "--json") == \
+        cli_json("eval", RUN, "--goals", "200", "--seed", "2", "--json")
+    five = cli_json("eval", RUN, "--goals", "five", "--per-goal", "1", "--json")
+    assert five["goals"] == 5 and sorted(five["per_goal"]) == ["A", "B", "C", "D", "E"]
+
+
+def test_eval_reads_inline_goals_as_it_reads_them_from_a_file(tmp_path):
+    csv_path, _ = write_goals(tmp_path, np.float32([[0.7, 0.3], [0.4, -0.5]]))
+    inline = cli_json("eval", RUN, "--goals", INLINE, "--seed", "3", "--json")
+    assert inline["goals"] == 2 and inline == cli_json("eval", RUN, "--goals", csv_path, "--seed", "3", "--json")
+
+
+BAD_GOALS = ["abc", "0", "-3", "0.7", "nan,0", "5,5", "", "{tmp}/missing.csv", "{tmp}/goals.txt", "{tmp}/wide.npy"]
+
+
+@pytest.mark.parametrize("command", ["eval " + RUN, "robot run --station fake"])
+def test_a_bad_goals_value_is_one_line_naming_it_and_the_forms(command, tmp_path):
+    (tmp_path / "goals.txt").write_text("x,y\n0.7,0.0\n")                   # neither .csv nor .npy
+    np.save(tmp_path / "wide.npy", np.zeros((4, 3)))
+    for value in BAD_GOALS:
+        value = value.replace("{tmp}", str(tmp_path))
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()), \
+                pytest.raises(SystemExit) as ex:
+            cli.main(command.split() + ["--goals", value])
+        msg = err.getvalue()
+        assert ex.value.code == 2 and msg.count("\n") == 1, (value, msg)
+        assert f"--goals {value!r}" in msg and "--goals takes N" in msg and "'five'" in msg, (value, msg)

@@ -1,5 +1,6 @@
-"""Goals for the episodes of a session: from the command line, a file or a list, the five-goal
-protocol or uniform over the opponent's half (`session_goals`).
+"""Goals for the episodes of a `ttmjx robot run` session (`session_goals`), from a --goals value
+in the one grammar `ttmjx eval` reads too (ttmjx.world.goalspec): N uniform goals, 'uniform'
+(--n of them), 'five', inline 'x,y;x,y' or a goal file.
 
 A goal is (x, y) in metres on the opponent's half (docs/DESIGN.md frame). One goal per episode;
 `episode_goals` repeats each goal (the paper's five-goal evaluation: 5 goals x 5 attempts). The
@@ -12,23 +13,7 @@ import numpy as np
 from ttmjx.world.config import Table
 from ttmjx.world.goalfile import check_goals, is_goal_file, read_goal_file
 from ttmjx.world.goals import five_goals, goals_from_unit
-
-
-def parse_goals(spec: str) -> np.ndarray:
-    """'x,y' or 'x,y;x,y;...' -> [N, 2]."""
-    rows = [r.strip() for r in spec.replace("\n", ";").split(";") if r.strip()]
-    if not rows:
-        raise ValueError(f"goal spec {spec!r} holds no goals; expected 'x,y' or 'x,y;x,y;...'")
-    goals = []
-    for r in rows:
-        parts = [p for p in r.replace(",", " ").split() if p]
-        if len(parts) != 2:
-            raise ValueError(f"goal {r!r} in {spec!r} must be two numbers 'x,y'")
-        try:
-            goals.append([float(p) for p in parts])
-        except ValueError as e:
-            raise ValueError(f"goal {r!r} in {spec!r} is not two numbers ({e})") from None
-    return check_goals(goals, f"goal spec {spec!r}")
+from ttmjx.world.goalspec import goal_spec, parse_goals  # noqa: F401  (parse_goals: deploy.robot's API)
 
 
 def goals_from_arg(arg: str, table: Table = Table()) -> np.ndarray:
@@ -57,15 +42,16 @@ def uniform_session_goals(n: int, seed: int = 0, table: Table = Table()) -> np.n
 
 
 def session_goals(spec: str, n: int, seed: int = 0, table: Table = Table()) -> np.ndarray:
-    """[N, 2] goals of a session, all on the opponent's half: 'five' (goals A..E of
-    ttmjx.world.goals.FIVE_GOALS, n attempts each in a row), 'uniform' (n goals,
-    uniform_session_goals), or an inline 'x,y;x,y' / goal file (each goal n times in a row)."""
+    """[N, 2] goals of a `robot run` session, all on the opponent's half, from a --goals value
+    (goal_spec): 'five' (goals A..E, n attempts each in a row), 'uniform' (n goals once each,
+    uniform_session_goals), N (N uniform goals), inline goals or a goal file (each goal n times in
+    a row)."""
     if n < 1:
         raise ValueError(f"--n must be >= 1, got {n}")
-    if spec == "five":
-        g = five_goals(n)[0]
-    elif spec == "uniform":
-        g = uniform_session_goals(n, seed, table)
-    else:
-        g = episode_goals(goals_from_arg(spec, table), n)     # a file's goals are checked as it is read
-    return check_goal_region(g, table)
+    g = goal_spec(spec, table)
+    if g.kind == "five":
+        return five_goals(n)[0]
+    if g.kind == "uniform" and g.count is None:
+        return uniform_session_goals(n, seed, table)
+    points = uniform_session_goals(g.count, seed, table) if g.kind == "uniform" else g.goals
+    return episode_goals(points, n)
