@@ -31,7 +31,7 @@ from typing import Any, Callable, Literal, NamedTuple
 
 from eval import table_cells
 from eval import tables
-from training import runconfig
+from training import overrides, runconfig
 from training.runconfig import RunConfig
 from training.trainer import practice_iterations, pretrain_iterations
 
@@ -101,35 +101,34 @@ def apply(base: RunConfig, overrides: dict) -> RunConfig:
     return replace_fields(base, {k: v.fn(base) if isinstance(v, Derived) else v for k, v in overrides.items()})
 
 
-def parse_settings(pairs, base: RunConfig) -> dict:
-    """`--set` pairs ('demo_source=paper', 'train.members=3') -> {dotted field: value}, each value
-    read as the type of the field it replaces in `base`; ValueError naming the pair otherwise."""
-    out = {}
-    for pair in pairs or ():
-        key, eq, text = pair.partition("=")
-        if not eq or not key:
-            raise ValueError(f"--set {pair!r}: expected FIELD=VALUE (e.g. demo_source=paper)")
-        obj = base
-        for part in key.split("."):
-            if not dataclasses.is_dataclass(obj) or part not in {f.name for f in dataclasses.fields(obj)}:
-                raise ValueError(f"--set {pair!r}: the run configuration has no field {key!r}")
-            obj = getattr(obj, part)
-        try:
-            if isinstance(obj, bool):
-                if text.lower() not in ("true", "false"):
-                    raise ValueError
-                value = text.lower() == "true"
-            elif isinstance(obj, (int, float, str)):
-                value = type(obj)(text)
-            else:
-                raise TypeError
-        except ValueError:
-            raise ValueError(f"--set {pair!r}: {text!r} is not of type {type(obj).__name__} (the type of {key})") from None
-        except TypeError:
-            raise ValueError(f"--set {pair!r}: {key} is a {type(obj).__name__}; --set takes numbers, "
-                             f"booleans and names") from None
-        out[key] = value
-    return out
+# Fields every cell sets itself: given as a run-configuration flag, refused with what to write.
+CELL_FIELDS = {"seed": "the cells' seeds are 0..N-1 (--seeds N)",
+               "run_dir": "each cell runs in OUT/runs/<cell> (--out OUT)",
+               "total_trajectories": "write --trajectories, the cells' budget",
+               "preset": "the cells' base is the scale's (--scale)"}
+
+
+def cell_overrides(base: RunConfig, cfg: RunConfig, taken: tuple = ()) -> dict:
+    """{dotted field: value} the run-configuration flags changed (`cfg`, parsed from `base`), for
+    every cell; `taken`: fields the command reads itself (baseline's first --seed, --devices).
+    ValueError naming the flag, for a field each cell sets itself (CELL_FIELDS)."""
+    changed = overrides.changed_fields(base, cfg)
+    for name, instead in CELL_FIELDS.items():
+        if name in changed and name not in taken:
+            raise ValueError(f"--{name.replace('_', '-')} {changed[name]}: {instead}")
+    return {k: v for k, v in changed.items() if k not in taken}
+
+
+def command_line(name: str, scale: str, seeds: int, cells: str | None, trajectories: int | None,
+                 out: str | None, changed: dict, devices: int | None) -> str:
+    """The `ttmjx ablate` command that rebuilds this table (summary.json's 'command'), in a fixed
+    order: the ablation, --scale, --seeds, --cells, --trajectories, --out, the run-configuration
+    flags (field order), --devices."""
+    return " ".join(["ttmjx ablate", name, "--scale", scale, "--seeds", str(seeds)]
+                    + (["--cells", cells] if cells else [])
+                    + (["--trajectories", str(trajectories)] if trajectories else [])
+                    + (["--out", out] if out else []) + overrides.flags_of(changed)
+                    + (["--devices", str(devices)] if devices else []))
 
 
 def check_choices(obj, where: str = "") -> None:
@@ -287,6 +286,12 @@ def _indices(name: str, order: list, item: str) -> range | list[int]:
                      f"variant of {name} ({', '.join(variants)})")
 
 
+def base_config(name: str, scale: str) -> RunConfig:
+    """The configuration every cell of ablation `name` at `scale` starts from (before the
+    run-configuration flags, the cell's seed, run directory and budget, and its variant)."""
+    return SCALES[scale].base(ABLATIONS[name].setting)
+
+
 def cell_base(base: RunConfig, seed: int, run_dir: str, trajectories: int | None = None) -> RunConfig:
     """A scale's base configuration for one table cell: its seed, its run directory and, if
     given, its trajectory budget (ablations and baselines alike)."""
@@ -296,13 +301,12 @@ def cell_base(base: RunConfig, seed: int, run_dir: str, trajectories: int | None
 
 
 def variant_config(name: str, variant: str, scale: str, seed: int, run_dir: str,
-                   trajectories: int | None = None, settings: tuple = ()) -> RunConfig:
-    """The resolved configuration of one cell: the scale's base, `settings` (`--set`
-    FIELD=VALUE pairs, for every cell) and the variant's own fields on top; ValueError naming
-    the variant if it is invalid."""
+                   trajectories: int | None = None, changed: dict | None = None) -> RunConfig:
+    """The resolved configuration of one cell: the scale's base, `changed` ({dotted field:
+    value}, the run-configuration flags, for every cell: cell_overrides) and the variant's own
+    fields on top; ValueError naming the variant if it is invalid."""
     ab = ABLATIONS[name]
-    base = cell_base(SCALES[scale].base(ab.setting), seed, run_dir, trajectories)
-    base = replace_fields(base, parse_settings(settings, base))
+    base = replace_fields(cell_base(base_config(name, scale), seed, run_dir, trajectories), changed or {})
     try:
         cfg = apply(base, ab.variants[variant])
         check_choices(cfg)
@@ -312,13 +316,13 @@ def variant_config(name: str, variant: str, scale: str, seed: int, run_dir: str,
 
 
 def plan(name: str, scale: str, seeds: int, out: str, spec: str | None = None,
-         trajectories: int | None = None, settings: tuple = (), devices: int | None = None) -> list[table_cells.Cell]:
+         trajectories: int | None = None, changed: dict | None = None, devices: int | None = None) -> list[table_cells.Cell]:
     """The selected cells with their configurations, checked before anything is written: every
     variant config valid, every finished result computed with the config asked for now.
     `devices`: the devices each program's lanes are laid over (None: every local device)."""
     cells = table_cells.planned_cells(out, select(name, cell_order(name, seeds), spec),
                                       lambda v, seed, run_dir: dataclasses.replace(
-                                          variant_config(name, v, scale, seed, run_dir, trajectories, settings),
+                                          variant_config(name, v, scale, seed, run_dir, trajectories, changed),
                                           devices=devices))
     practising = [c.config for c in cells if c.config.practice]
     if practising and all(practice_iterations(c) == 0 for c in practising):
@@ -347,13 +351,13 @@ def status(out: str, name: str, seeds: int) -> list[str]:
 # -- running and reporting ---------------------------------------------------------------------
 def run(name: str, scale: str, seeds: int, out: str, spec: str | None = None, trajectories: int | None = None,
         progress: bool = True, trainer: table_cells.Trainer = table_cells.goalseye, command: str = "",
-        settings: tuple = (), devices: int | None = None) -> dict:
+        changed: dict | None = None, devices: int | None = None) -> dict:
     """Train the selected cells that are not finished, then rebuild the outputs. The summary has
     'stopped_by_signal' set when a signal cut a cell short (its run resumes next time). The cells
     that one program can train (training.seeds.program_key: the seeds of a variant, and variants
     that differ only in the lane knobs or their demonstrations) train together, their lanes laid
     over `devices` devices (None: all)."""
-    cells = plan(name, scale, seeds, out, spec, trajectories, settings, devices)
+    cells = plan(name, scale, seeds, out, spec, trajectories, changed, devices)
     for c in cells:
         if c.config.practice and practice_iterations(c.config) == 0:
             log(f"[ablate] note: {c.name} practises nothing: its {c.config.total_trajectories} trajectories do not "

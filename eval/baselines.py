@@ -40,7 +40,7 @@ from eval import ablate
 from eval import table_cells
 from eval import tables
 from eval.evaluate import uniform_runs
-from training import runconfig
+from training import overrides, runconfig
 from ttmjx.world import files
 from training.baselines import agents
 from training.baselines.config import RewardConfig
@@ -81,24 +81,26 @@ def tiny_rl() -> dict:
 
 
 def method_config(method: str, scale: str, seed: int, run_dir: str, trajectories: int | None = None,
-                  reward: RewardConfig = RewardConfig(), rl: dict | None = None):
+                  reward: RewardConfig = RewardConfig(), rl: dict | None = None, changed: dict | None = None):
     """The cell's configuration: a BaselineConfig (RL) or a RunConfig; ValueError naming the
     method and the problem. An RL cell runs exactly its budget: one that no whole number of the
     method's batches fills (or below one batch) is refused, naming the nearest budgets that are
-    (agents.schedule). `rl`: RL settings replacing the scale's ({'ppo': PPOConfig(...)})."""
+    (agents.schedule). `rl`: RL settings replacing the scale's ({'ppo': PPOConfig(...)}).
+    `changed`: {dotted field: value} set on the scale's GoalsEye base for every cell (the
+    run-configuration flags, ablate.cell_overrides), before the method's own fields."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {METHODS}")
-    base = ablate.cell_base(goalseye_base(scale), seed, run_dir, trajectories)
     try:
+        base = ablate.replace_fields(ablate.cell_base(goalseye_base(scale), seed, run_dir, trajectories), changed or {})
         if method in RL:
             run = agents.run_config(method, base)
             settings = {**(tiny_rl() if scale == "tiny" else {"num_evals": 8}), **(rl or {})}
             return agents.BaselineConfig(method, run, reward=reward, **settings)
-        overrides = {"gcsl": {"demos": 0, "pretrain_steps": 0, "preset": "gcsl"},
+        own = {"gcsl": {"demos": 0, "pretrain_steps": 0, "preset": "gcsl"},
                      "lfp": {"practice": False, "demos": ablate.ALL_TRAJECTORIES,
                              "pretrain_steps": ablate.GOALSEYE_UPDATES, "preset": "lfp"},
                      "goalseye": {}}[method]
-        cfg = ablate.apply(base, overrides)
+        cfg = ablate.apply(base, own)
         # GoalsEye's budget holds its demonstrations and at least one practice round (LFP's
         # updates are GoalsEye's, so the same); GCSL's one round: fewer trains the method on nothing.
         need = (cfg if method == "gcsl" else base).demos + base.episodes_per_ssp
@@ -123,12 +125,13 @@ def parse_methods(spec: str) -> list[str]:
 
 
 def plan(methods: list[str], scale: str, seeds: int, out: str, trajectories: int | None = None,
-         reward: RewardConfig = RewardConfig(), rl: dict | None = None, first_seed: int = 0) -> list[table_cells.Cell]:
+         reward: RewardConfig = RewardConfig(), rl: dict | None = None, first_seed: int = 0,
+         changed: dict | None = None) -> list[table_cells.Cell]:
     """The cells of seeds first_seed..first_seed+seeds-1 (seed-major), every configuration built
     and every finished result checked before anything is written."""
     entries = [(m, seed) for seed in range(first_seed, first_seed + seeds) for m in methods]
     return table_cells.planned_cells(
-        out, entries, lambda m, seed, run_dir: method_config(m, scale, seed, run_dir, trajectories, reward, rl))
+        out, entries, lambda m, seed, run_dir: method_config(m, scale, seed, run_dir, trajectories, reward, rl, changed))
 
 
 # -- the RL trainer (the cells seam) ------------------------------------------------------------
@@ -291,7 +294,7 @@ def seeds_trainer(cfgs: list, progress: bool = True) -> list[table_cells.Outcome
     return rl_seeds(cfgs, progress) if isinstance(cfgs[0], agents.BaselineConfig) else table_cells.goalseye_seeds(cfgs, progress)
 
 
-# brax PPO at --scale tiny on 2 CPU cores (#48): ~57 environment steps/s over the 5 seeds of a
+# brax PPO at --scale tiny on 2 CPU cores (measured): ~57 environment steps/s over the 5 seeds of a
 # program, compile aside; taken as proportional to the cores. On a GPU: docs/BENCHMARKS.md.
 CPU_STEPS_PER_S_PER_CORE = 57 / 2
 
@@ -319,16 +322,34 @@ def cpu_estimate(cells: list, results_dir: str, scale: str, platform: str | None
 
 def run(methods: list[str], scale: str, seeds: int, out: str, trajectories: int | None = None,
         reward: RewardConfig = RewardConfig(), progress: bool = True, command: str = "", rl: dict | None = None,
-        first_seed: int = 0) -> dict:
+        first_seed: int = 0, changed: dict | None = None) -> dict:
     """Train the cells that are not finished, then rebuild the table from every finished result
     (those of other seeds in `out` too: machines that ran other seeds add to one table)."""
-    cells = plan(methods, scale, seeds, out, trajectories, reward, rl, first_seed)
+    cells = plan(methods, scale, seeds, out, trajectories, reward, rl, first_seed, changed)
     estimate = cpu_estimate(cells, os.path.join(out, "results"), scale)
     if estimate:
         log(estimate, file=sys.stderr)
     stopped = table_cells.run_cells(cells, os.path.join(out, "results"), trainer, progress, f"baseline {scale}",
                                     log=lambda m: log(m, file=sys.stderr), batch=seeds_trainer)
     return table_cells.finish(cells, out, stopped, lambda: build_report(scale, out, command))
+
+
+def rl_settings(**configs) -> dict:
+    """{method: its settings} of the RL methods whose settings differ from the defaults
+    (`ppo=PPOConfig(...)`, ...): what replaces the scale's."""
+    return {name: c for name, c in configs.items() if c != type(c)()}
+
+
+def command_line(method: str, scale: str, seeds: int, seed: int, trajectories: int | None, out: str | None,
+                 changed: dict) -> str:
+    """The `ttmjx baseline` command that rebuilds this table (summary.json's 'command'), in a
+    fixed order: the methods, --scale, --seeds, --seed, --trajectories, --out, then the
+    run-configuration flags (field order); the reward's and RL methods' settings are in each
+    result's config."""
+    return " ".join(["ttmjx baseline", method, "--scale", scale, "--seeds", str(seeds)]
+                    + (["--seed", str(seed)] if seed else [])
+                    + (["--trajectories", str(trajectories)] if trajectories else [])
+                    + (["--out", out] if out else []) + overrides.flags_of(changed))
 
 
 def build_report(scale: str, out: str, command: str = "") -> dict:

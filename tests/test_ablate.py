@@ -189,18 +189,47 @@ def test_a_program_too_big_for_the_device_is_refused_in_one_line_with_nothing_wr
     assert not os.listdir(out / "runs")
 
 
-def test_settings_apply_to_every_cell_before_the_variants_own():
-    """`--set FIELD=VALUE`: e.g. Table I on another bootstrap (`--set demo_source=striker`)."""
-    cfgs = [ablate.variant_config("practice", v, "tiny", 0, "/tmp/x", None,
-                                  ("demo_source=striker", "train.learning_rate=5e-4", "practice=true"))
-            for v in ablate.ABLATIONS["practice"].variants]
-    assert all(c.demo_source == "striker" and c.train.learning_rate == 5e-4 for c in cfgs)
-    assert [c.practice for c in cfgs] == [True, False, False, False]   # the variants' own fields win
-    for bad, says in [("demos", "expected FIELD=VALUE"), ("foo=1", "no field 'foo'"),
-                      ("demos=abc", "'abc' is not of type int"), ("practice=yes", "not of type bool"),
-                      ("world.throws=any", "--set takes numbers")]:
+def test_config_flags_reach_every_cell_before_the_variants_own(tmp_path):
+    """`ttmjx ablate` takes the run configuration's flags as `ttmjx train` does (parsed by the
+    same code), e.g. Table I on another bootstrap: `--demo-source striker`; each is set on every
+    cell before the variant's own fields, and the summary's command names them."""
+    argv = ["practice", "--scale", "tiny", "--demo-source", "striker", "--train.learning-rate", "5e-4",
+            "--world.timing.ideal-timing", "--devices", "1", "--out", str(tmp_path / "t")]
+    a = cli.parse_ablate(argv)
+    changed = ablate.cell_overrides(ablate.base_config("practice", "tiny"), a.config, taken=("devices",))
+    assert changed == {"train.learning_rate": 5e-4, "demo_source": "striker"}   # in field order; tiny's timing is ideal already
+    cells = ablate.plan("practice", "tiny", 2, str(tmp_path / "t"), changed=changed, devices=a.config.devices)
+    assert len(cells) == 8
+    assert all(c.config.demo_source == "striker" and c.config.train.learning_rate == 5e-4 and c.config.devices == 1
+               for c in cells)
+    assert [c.config.practice for c in cells[:4]] == [True, False, False, False]   # the variants' own fields win
+    assert ablate.command_line("practice", "tiny", 2, None, None, None, changed, 1) == \
+        "ttmjx ablate practice --scale tiny --seeds 2 --train.learning-rate 0.0005 --demo-source striker --devices 1"
+    # the flags start from the ablation's base at its scale: ensembles' full base has 10 members
+    full = cli.parse_ablate(["ensembles", "--scale", "full", "--train.members", "5", "--episodes-per-ssp", "4000"])
+    assert ablate.cell_overrides(ablate.base_config("ensembles", "full"), full.config) == {"train.members": 5}
+    # fields each cell sets itself are refused with the flag to write
+    for flag, says in ((["--seed", "3"], "--seed 3: the cells' seeds"), (["--total-trajectories", "9"], "--trajectories"),
+                       (["--run-dir", "r"], "--out OUT")):
         with pytest.raises(ValueError, match=says):
-            ablate.variant_config("practice", "goalseye", "tiny", 0, "/tmp/x", None, (bad,))
+            ablate.cell_overrides(ablate.base_config("demos", "tiny"),
+                                  cli.parse_ablate(["demos", "--scale", "tiny", *flag]).config)
+
+
+@pytest.mark.parametrize("given, says", [
+    (["--set", "demo_source=paper"], "--set demo_source=paper: write --demo-source paper"),
+    (["--set", "train.members=4", "practice=false", "--seeds", "1"],
+     "--set train.members=4 practice=false: write --train.members 4 --no-practice"),
+    (["--set=world.timing.ideal_timing=true"], "--set world.timing.ideal_timing=true: write --world.timing.ideal-timing"),
+])
+def test_the_retired_set_is_refused_with_the_new_spelling(given, says, capsys):
+    """`--set FIELD=VALUE` (ablate's own grammar) is gone: one line saying how to write exactly
+    what was given as the flags `train` takes, exit 2, for ablate and baseline alike."""
+    for command in (["ablate", "demos", "--scale", "tiny"], ["baseline", "gcsl", "--scale", "tiny"]):
+        with pytest.raises(SystemExit) as e:
+            cli.main([*command, *given])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert e.value.code == 2 and err == [f"ttmjx {command[0]}: error: {says}"], err
 
 
 def test_a_budget_that_no_cell_practises_in_is_refused(tmp_path):

@@ -671,7 +671,7 @@ def test_baseline_on_the_cpu_states_the_expected_time_before_it_starts(tmp_path,
 
 def test_ablate_plan_refuses_a_cell_run_started_with_another_config(tmp_path):
     """`ablate --plan` said "to do" for a cell whose unfinished run was started with another
-    configuration (another --set), which the real run's trainer then refused: the plan refuses
+    configuration (other run-configuration flags), which the real run's trainer then refused: the plan refuses
     it as the run would, one line naming the run directory and the fields."""
     from eval import ablate
     from training.runconfig import to_json

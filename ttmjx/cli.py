@@ -25,7 +25,8 @@ from ttmjx.commandline import (Command, Flag, Report, check_new_path, check_resu
                                table)
 from eval.ablate import ABLATION_NAMES, SCALE_NAMES
 from training.baselines.config import ESConfig, PPOConfig, QTOptConfig, RewardConfig, SACConfig
-from training.runconfig import PRESET_NAMES, RunConfig, preset
+from training import overrides
+from training.runconfig import PRESET_NAMES, RunConfig
 from ttmjx.world.backends import BACKENDS, backend_kind
 from ttmjx.world.config import CONTROL_RATES, THROW_DISTRIBUTIONS, World
 
@@ -254,8 +255,13 @@ class AblateArgs(Report):
     """One of the paper's simulated ablations: every (variant, seed) cell a training run, then a
     markdown table (mean +- 95% interval over seeds), learning curves and landing maps
     (eval/ablate.py ABLATIONS lists the variants). The same command resumes: finished cells are
-    skipped, a half-finished one resumes from its checkpoint."""
-    BOUNDS: ClassVar[dict] = {"seeds": (1, 1000), "trajectories": (1, None), "devices": (1, None)}
+    skipped, a half-finished one resumes from its checkpoint.
+
+    Every run-configuration field is a flag as in `ttmjx train` (`ttmjx train --help` lists
+    them), e.g. `--demo-source paper` (the table on the paper's bootstrap procedure) or
+    `--train.members 4`: set on the scale's base for every cell, before the variants' own fields.
+    --devices N lays each program's lanes (the cells it trains together) over N local devices."""
+    BOUNDS: ClassVar[dict] = {"seeds": (1, 1000), "trajectories": (1, None)}
     name: Annotated[Literal[ABLATION_NAMES], tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
     """The ablation: demos, noise, ensembles, inputs, bootstrap, practice or ratio."""
     scale: Literal["auto", *SCALE_NAMES] = "auto"
@@ -268,11 +274,7 @@ class AblateArgs(Report):
     """Total trajectories per cell; None: the scale's."""
     out: str | None = None
     """Ablation directory; None: ablations/NAME-SCALE."""
-    set: tuple[str, ...] = ()
-    """FIELD=VALUE settings of the run configuration for every cell, before the variants' own
-    (e.g. --set demo_source=paper: the table on the paper's bootstrap procedure)."""
-    devices: int | None = None
-    """Lay each program's lanes (the cells it trains together) over this many local devices; None: all of them."""
+    config: Annotated[RunConfig, tyro.conf.arg(name="")]
     report: Flag = False
     """Only (re)build the table, curves, landing maps and summary from the finished cells."""
     plan: Flag = False
@@ -290,7 +292,12 @@ class BaselineArgs(Report):
     table (mean +- 95% interval over seeds), learning curves, landing maps, JSON per cell. The seeds
     of a method train together as one program (RL seeds in groups, where all of them would not
     fit the GPU's memory). The same command skips finished cells and resumes
-    cut ones (RL cells from the state saved after every epoch)."""
+    cut ones (RL cells from the state saved after every epoch).
+
+    --seed S: the first seed (so that several machines or calls each run some seeds of one
+    table). Every other run-configuration field is a flag as in `ttmjx train` (`ttmjx train
+    --help` lists them), e.g. `--demo-source paper` or `--world.timing.ideal-timing`: set on the
+    scale's GoalsEye base for every cell (RL methods' world and policy included)."""
     BOUNDS: ClassVar[dict] = {"seeds": (1, 1000), "trajectories": (1, None)}
     method: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="METHOD")]
     """ppo, sac, es, qtopt, gcsl, lfp or goalseye; several comma-separated, or all."""
@@ -298,8 +305,6 @@ class BaselineArgs(Report):
     """Trajectories per cell; None: the scale's (full: 120,000, the paper's)."""
     seeds: int = 5
     """Seeds per method: --seed..--seed+N-1."""
-    seed: int = 0
-    """The first seed (so that several machines or calls each run some seeds of one table)."""
     scale: Literal["tiny", "full"] = "full"
     """tiny (CPU tests: 2 environments, tiny batches) or full (one GPU per cell)."""
     out: str | None = None
@@ -314,6 +319,7 @@ class BaselineArgs(Report):
     """brax ES's settings at --scale full."""
     qtopt: QTOptConfig = QTOptConfig()
     """QT-Opt's settings at --scale full (its CEM, target networks, replay; training/baselines/config.py)."""
+    config: Annotated[RunConfig, tyro.conf.arg(name="")]
     report: Flag = False
     """Only (re)build the table, curves, landing maps and summary from the finished cells."""
 
@@ -481,33 +487,9 @@ def sim(a: SimArgs) -> None:
 
 
 def demos(a: DemosArgs) -> None:
-    from ttmjx.tools import demos as demonstrations
-    params_dir = es_dir = None
-    if a.rebuild != "none":
-        from training import bootstrap_paper
-        built = os.path.join(a.out, "bootstrap")
-        bootstrap_paper.build(built, bootstrap_paper.default_world().with_throws(a.distribution, spin=a.spin),
-                              bootstrap_paper.Procedure(final=a.n, seed=a.seed, es_generations=a.es_generations),
-                              rebuild_es=a.rebuild == "all",
-                              progress=not a.json, log=(lambda m: print(m, file=sys.stderr)))
-        params_dir, es_dir = built, (built if a.rebuild == "all" else None)
-    fresh = not os.path.exists(a.out) or not os.listdir(a.out)
-    try:
-        out = demonstrations.make_dataset(a.world(), a.source, a.n, a.seed, a.out, a.backend,
-                                          progress=not a.json, params_dir=params_dir, es_dir=es_dir)
-    except BaseException:
-        # Whole or absent: a dataset cut short (a full disk, a signal) leaves no partial files
-        # (a temporary .npz, a dataset without its figure), so the same command runs again. What
-        # --rebuild built (OUT/bootstrap/) stays.
-        if fresh and os.path.isdir(a.out):
-            import shutil
-            for name in os.listdir(a.out):
-                if name != "bootstrap":
-                    p = os.path.join(a.out, name)
-                    shutil.rmtree(p) if os.path.isdir(p) else os.remove(p)
-            if not os.listdir(a.out):
-                os.rmdir(a.out)
-        raise
+    from training import dataset_build
+    out = dataset_build.dataset(a.world(), a.source, a.n, a.seed, a.out, a.backend, a.rebuild, a.es_generations,
+                                progress=not a.json, log=lambda m: print(m, file=sys.stderr))
     report(a, out, f"{table(out)}\nwrote {a.out} (and {os.path.join(a.out, 'coverage.png')})")
 
 
@@ -517,38 +499,59 @@ def plot_landings(a: PlotArgs) -> None:
     report(a, {"plot": path}, f"wrote {path}")
 
 
-def given(argv: list[str], *flags: str) -> bool:
-    """Whether any of `flags` ('--a-b', also spelled --a_b or --a-b=V) is on the command line."""
-    return any(arg.split("=")[0].replace("_", "-") in flags for arg in argv)
-
-
 def parse_train(argv: list[str]) -> TrainArgs:
     """--preset P picks the defaults tyro shows and overrides (`--preset` is RunConfig.preset)."""
-    name = "default"
-    for i, arg in enumerate(argv):
-        if arg.startswith("--preset="):
-            name = arg.split("=", 1)[1]
-        elif arg == "--preset" and i + 1 < len(argv):
-            name = argv[i + 1]
-    if name not in PRESET_NAMES:
-        raise ValueError(f"--preset {name!r}: expected one of {', '.join(PRESET_NAMES)}")
-    base = preset(name)
-    if given(argv, "--world.control-hz", "--world.max-physics-dt") and not given(argv, "--world.physics-dt"):
-        argv = ["--world.physics-dt", "None", *argv]   # derived again from the new rate
-    a = parse_args("train", TrainArgs, argv, default=TrainArgs(config=base))
-    if a.config.world.timing.ideal_timing:
-        ignored = [arg.split("=")[0] for arg in argv if arg.startswith("--world.timing.")
-                   and arg.split("=")[0].replace("_", "-") not in ("--world.timing.ideal-timing",
-                                                                   "--world.timing.no-ideal-timing",
-                                                                   "--world.timing.extrapolate-s")]
-        if ignored:
-            raise ValueError(f"{ignored[0]} would be ignored: this run's timing is ideal (--world.timing.ideal-timing, "
-                             f"preset {name}), which resets every delay and rate; add --world.timing.no-ideal-timing "
-                             f"to use it")
-    if a.config.seed != 0 and not given(argv, "--run-dir"):
-        a = dataclasses.replace(a, config=dataclasses.replace(
-            a.config, run_dir=f"{base.run_dir}-seed{a.config.seed}"))
+    name, base = overrides.preset_named(argv)
+    a = overrides.parse_config_args("train", TrainArgs, argv, TrainArgs(config=base), f"preset {name}")
+    return dataclasses.replace(a, config=overrides.seed_run_dir(a.config, base, argv))
+
+
+def parse_cells(command: str, cls: type, argv: list[str], picks: dict | None, base_of) -> Report:
+    """`ablate`, `baseline`: tyro on `cls`, the run-configuration flags as `train` reads them,
+    starting from the cells' base `base_of(**picks)` -> (config, its name); `picks` are the
+    arguments that choose it, read from argv by hand (None where argv has none valid: then tyro
+    refuses or prints --help on its own), read again from tyro's parse where it differs (a value
+    such as `--out demos` taken for the ablation). The retired --set is refused, naming the flags
+    to write instead."""
+    refusal = overrides.set_refusal(argv)
+    if refusal:
+        raise ValueError(refusal)
+    if picks is None:
+        return parse_args(command, cls, argv)
+    for _ in range(2):
+        base, where = base_of(**picks)
+        a = overrides.parse_config_args(command, cls, argv, cls(**picks, config=base), where)
+        read = {k: getattr(a, k) for k in picks}
+        if read == picks:
+            break
+        picks = read
     return a
+
+
+def ablation_base(name: str, scale: str) -> tuple[RunConfig, str]:
+    from eval.ablate import base_config, resolve_scale
+    return base_config(name, resolve_scale(scale)), f"ablation {name}'s base at scale {scale}"
+
+
+def parse_ablate(argv: list[str]) -> AblateArgs:
+    name = next((arg for arg in argv if arg in ABLATION_NAMES), None)
+    scale = overrides.flag_value(argv, "--scale", "auto")
+    valid = name is not None and scale in ("auto", *SCALE_NAMES)
+    return parse_cells("ablate", AblateArgs, argv, {"name": name, "scale": scale} if valid else None, ablation_base)
+
+
+def baseline_base(method: str, scale: str) -> tuple[RunConfig, str]:
+    from eval.baselines import goalseye_base
+    return goalseye_base(scale), f"the GoalsEye base at scale {scale}"
+
+
+def parse_baseline(argv: list[str]) -> BaselineArgs:
+    from eval.baselines import METHODS
+    method = next((arg for arg in argv if arg == "all" or (not arg.startswith("-") and arg.split(",")[0] in METHODS)), None)
+    scale = overrides.flag_value(argv, "--scale", "full")
+    valid = method is not None and scale in ("tiny", "full")
+    return parse_cells("baseline", BaselineArgs, argv, {"method": method, "scale": scale} if valid else None,
+                       baseline_base)
 
 
 def train(a: TrainArgs) -> None:
@@ -569,7 +572,7 @@ def train(a: TrainArgs) -> None:
         out = Run(cfg, evaluate=training_evaluation(cfg), progress=not a.json).run(max_iterations=a.max_iterations)
         report(a, out, table(out))
     if out["stopped_by_signal"]:
-        sys.exit(128 + out["stopped_by_signal"])   # the shell's convention for a signalled exit
+        sys.exit(commandline.signal_exit_code(out["stopped_by_signal"]))
 
 
 def run_report(a: ReportArgs) -> None:
@@ -584,21 +587,18 @@ def run_report(a: ReportArgs) -> None:
 
 def evaluate(a: EvalArgs) -> None:
     from eval.evaluate import evaluate_checkpoint
+    from eval.seed_batch import evaluate_seeds
     from training.baselines.qtopt import check_exportable
-    from training.seeds import pick_seed, seed_run_dirs, seed_spread
+    from training.seeds import pick_seed
     check_exportable(a.run)
-    dirs = seed_run_dirs(a.run)
-    if dirs is not None and a.seed_index is None:   # a batch of seeds: each one, then the spread
-        if a.out:
-            raise ValueError(f"--out with {a.run} (a batch of {len(dirs)} seeds): choose one with --seed-index")
-        runs = [{"run_dir": d, **{f"eval_{k}": v for k, v in evaluate_checkpoint(
-                    d, a.goals, a.per_goal, a.distribution, a.backend, a.seed, a.member, a.step).items()
-                    if isinstance(v, (int, float))}} for d in dirs]
-        out = {"run": a.run, "seeds": len(dirs), **seed_spread(runs), "runs": runs}
-        lines = [f"{os.path.basename(r['run_dir'])}: <=30cm {r['eval_within_30cm']:.1%} <=20cm "
-                 f"{r['eval_within_20cm']:.1%} hit {r['eval_hit_rate']:.1%}" for r in runs]
-        report(a, out, "\n".join(lines) + "\n" + table({k: v for k, v in out.items() if k.endswith(("_mean", "_std"))}))
-        return
+    if a.seed_index is None:
+        out = evaluate_seeds(a.run, a.goals, a.per_goal, a.distribution, a.backend, a.seed, a.member, a.step, a.out)
+        if out is not None:     # a batch of seeds: each one, then the spread
+            lines = [f"{os.path.basename(r['run_dir'])}: <=30cm {r['eval_within_30cm']:.1%} <=20cm "
+                     f"{r['eval_within_20cm']:.1%} hit {r['eval_hit_rate']:.1%}" for r in out["runs"]]
+            report(a, out, "\n".join(lines) + "\n" +
+                   table({k: v for k, v in out.items() if k.endswith(("_mean", "_std"))}))
+            return
     out = evaluate_checkpoint(pick_seed(a.run, a.seed_index), a.goals, a.per_goal, a.distribution, a.backend,
                               a.seed, a.member, a.step, out=a.out)
     text = table(out, skip=("per_goal",))
@@ -613,23 +613,21 @@ def evaluate(a: EvalArgs) -> None:
 def ablate(a: AblateArgs) -> None:
     from eval import ablate as ablations
     from training.mesh import check_local_devices
-    check_local_devices(a.devices)   # before any cell is planned or compiled
+    devices = a.config.devices
+    check_local_devices(devices)   # before any cell is planned or compiled
     scale = ablations.resolve_scale(a.scale)
+    changed = ablations.cell_overrides(ablations.base_config(a.name, scale), a.config, taken=("devices",))
     out = a.out or ablations.default_out(a.name, scale)
     if a.plan:
-        ablations.plan(a.name, scale, a.seeds, out, a.cells, a.trajectories, a.set, a.devices)   # refuses what would fail
+        ablations.plan(a.name, scale, a.seeds, out, a.cells, a.trajectories, changed, devices)   # refuses what would fail
         print("\n".join(ablations.status(out, a.name, a.seeds)))
         return
-    command = " ".join(["ttmjx ablate", a.name, "--scale", scale, "--seeds", str(a.seeds)]
-                       + (["--cells", a.cells] if a.cells else [])
-                       + (["--trajectories", str(a.trajectories)] if a.trajectories else [])
-                       + (["--out", a.out] if a.out else []) + [f"--set {p}" for p in a.set]
-                       + (["--devices", str(a.devices)] if a.devices else []))
+    command = ablations.command_line(a.name, scale, a.seeds, a.cells, a.trajectories, a.out, changed, devices)
     if a.report:
         summary = ablations.build_report(a.name, scale, out, command)
     else:
         summary = ablations.run(a.name, scale, a.seeds, out, a.cells, a.trajectories, progress=not a.json,
-                                command=command, settings=a.set, devices=a.devices)
+                                command=command, changed=changed, devices=devices)
     table_report(a, "ablate", summary, out)
 
 
@@ -648,24 +646,22 @@ def table_report(a: Report, name: str, summary: dict, out: str) -> None:
         runs = summary.get("unfinished", [])
         saved = [r for r in runs if os.path.isdir(os.path.join(r, "checkpoints"))]
         fail(name, f"stopped by {signal.Signals(sig).name}: {len(runs)} cell(s) unfinished; checkpoint saved in "
-                   f"{', '.join(saved) or 'none yet'}; run the same command to resume", code=128 + sig)
+                   f"{', '.join(saved) or 'none yet'}; run the same command to resume", code=commandline.signal_exit_code(sig))
 
 
 def baseline(a: BaselineArgs) -> None:
-    from eval import baselines
+    from eval import ablate, baselines
     methods = baselines.parse_methods(a.method)
+    first = a.config.seed
+    changed = ablate.cell_overrides(baselines.goalseye_base(a.scale), a.config, taken=("seed",))
     out = a.out or os.path.join("baselines", a.scale)
-    command = " ".join(["ttmjx baseline", a.method, "--scale", a.scale, "--seeds", str(a.seeds)]
-                       + (["--seed", str(a.seed)] if a.seed else [])
-                       + (["--trajectories", str(a.trajectories)] if a.trajectories else [])
-                       + (["--out", a.out] if a.out else []))
+    command = baselines.command_line(a.method, a.scale, a.seeds, first, a.trajectories, a.out, changed)
     if a.report:
         summary = baselines.build_report(a.scale, out, command)
     else:
-        rl = {name: c for name, c in (("ppo", a.ppo), ("sac", a.sac), ("es", a.es), ("qtopt", a.qtopt))
-              if c != type(c)()}
+        rl = baselines.rl_settings(ppo=a.ppo, sac=a.sac, es=a.es, qtopt=a.qtopt)
         summary = baselines.run(methods, a.scale, a.seeds, out, a.trajectories, a.reward, progress=not a.json,
-                                command=command, rl=rl, first_seed=a.seed)
+                                command=command, rl=rl, first_seed=first, changed=changed)
     table_report(a, "baseline", summary, out)
 
 
@@ -761,8 +757,10 @@ COMMANDS: dict[str, Command] = {
     "eval": Command(EvalArgs, evaluate, "goal-reaching metrics of a run or checkpoint", resumes=False),
     "report": Command(ReportArgs, run_report, "why a run learns or not: practice by goal region, members, pool density",
                       resumes=False),
-    "ablate": Command(AblateArgs, ablate, "a paper ablation: cells of (variant, seed) runs -> table, curves, landing maps"),
-    "baseline": Command(BaselineArgs, baseline, "Table I: RL baselines (brax PPO, SAC, ES; QT-Opt), GCSL, LFP and GoalsEye -> table, curves"),
+    "ablate": Command(AblateArgs, ablate, "a paper ablation: cells of (variant, seed) runs -> table, curves, landing maps",
+                      parse_ablate),
+    "baseline": Command(BaselineArgs, baseline, "Table I: RL baselines (brax PPO, SAC, ES; QT-Opt), GCSL, LFP and GoalsEye -> table, curves",
+                        parse_baseline),
     "export": Command(ExportArgs, export, "safetensors weights + contract + golden self-test + ONNX graph for the robot runner",
                       resumes=False),
     "robot run": robot_side.COMMANDS["robot run"]._replace(run=lambda a: robot_side.robot_run(a, sim_station)),

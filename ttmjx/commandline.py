@@ -12,6 +12,7 @@ import io
 import json
 import os
 import re
+import signal
 import sys
 from typing import Annotated, Any, Callable, ClassVar, NamedTuple, NoReturn
 
@@ -224,6 +225,40 @@ def command_of(commands: dict, argv: list[str]) -> tuple[str, list[str]]:
     fail(group, f"{'unknown command ' + repr(rest[0]) if rest else 'no command'}; expected one of {expected}")
 
 
+# --------------------------------------------------------------------------------------------
+# Signals: the one home of both ways a command stops on SIGINT (Ctrl-C) or SIGTERM
+#   - anywhere in a command, the signal unwinds it: Ctrl-C raises KeyboardInterrupt (Python's
+#     own), SIGTERM raises Stopped (stop_on_sigterm); `run` ends both as one line, 130 / 143;
+#   - inside a training loop (training/trainer.py Run, training/seeds.py SeedRuns), where an
+#     exception would lose the iteration and could cut a checkpoint in half, the signal only asks
+#     the loop to stop (install_stop_signals): it finishes the iteration, saves, and returns the
+#     signal as `stopped_by_signal`, which the command exits with (signal_exit_code).
+# --------------------------------------------------------------------------------------------
+def signal_exit_code(signum: int) -> int:
+    """128 + signal: the shell's convention for a command ended by a signal (130 Ctrl-C, 143 SIGTERM)."""
+    return 128 + signum
+
+
+def install_stop_signals(owner) -> None:
+    """SIGINT/SIGTERM set owner._stop to the signal (the loop saves and exits after the iteration,
+    logging through owner.log); a second one exits at once (the last checkpoint stays).
+    restore_signals puts the previous handlers back."""
+
+    def handler(signum, frame):
+        if owner._stop:
+            os._exit(signal_exit_code(signum))
+        owner._stop = signum
+        owner.log(f"\n[ttmjx] {signal.Signals(signum).name}: finishing this iteration, saving a checkpoint, "
+                  f"then exiting (resume with the same command)")
+    owner._old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+
+
+def restore_signals(owner) -> None:
+    """The handlers install_stop_signals replaced, back in place."""
+    for s, h in getattr(owner, "_old", {}).items():
+        signal.signal(s, h)
+
+
 class Stopped(BaseException):
     """SIGTERM outside a training loop (whose own handler saves a checkpoint and stops it at the
     end of the iteration, training/trainer.py): the command ends as after Ctrl-C, with 143."""
@@ -239,7 +274,6 @@ def stop_on_sigterm():
     saved (checkpoints, episode logs) stays, and main exits 143 with one line. A stop raised
     where Python drops exceptions (a collector or weakref callback, a finalizer: JAX has them)
     is sent again (`resent`)."""
-    import signal
     import threading
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -259,7 +293,6 @@ def stop_on_sigterm():
 def resent(unraisable) -> bool:
     """If a dropped exception (sys.unraisablehook's argument) is a stop, send its signal again
     10 ms later, when the callback is over, and return True; else False."""
-    import signal
     import threading
     e = unraisable.exc_value
     signum = e.signum if isinstance(e, Stopped) else signal.SIGINT if isinstance(e, KeyboardInterrupt) else None
@@ -290,7 +323,7 @@ def run(commands: dict, argv: list[str], prepare: Callable[[], None] | None = No
             args = cmd.parse(rest) if cmd.parse else parse_args(name, cmd.args, rest)
             cmd.run(args)
     except Stopped:
-        fail(name, f"stopped by SIGTERM; {after_stop(cmd)}", code=143)
+        fail(name, f"stopped by SIGTERM; {after_stop(cmd)}", code=signal_exit_code(signal.SIGTERM))
     except (ValueError, FileExistsError, FileNotFoundError, NotADirectoryError, IsADirectoryError) as e:
         fail(name, str(e) if not isinstance(e, OSError) or not e.strerror else file_error(e))
     except OSError as e:          # permission denied, disk full: the environment, not the input
@@ -298,4 +331,4 @@ def run(commands: dict, argv: list[str], prepare: Callable[[], None] | None = No
     except (RuntimeError, ArithmeticError) as e:   # e.g. training.trainer.NonFiniteError
         fail(name, f"{type(e).__name__}: {e}", code=1)
     except KeyboardInterrupt:
-        fail(name, f"stopped by SIGINT (Ctrl-C); {after_stop(cmd)}", code=130)
+        fail(name, f"stopped by SIGINT (Ctrl-C); {after_stop(cmd)}", code=signal_exit_code(signal.SIGINT))
