@@ -114,3 +114,24 @@ def test_a_run_without_demonstrations_has_none_and_the_report_says_so(run, tmp_p
         summary = write_report(str(d), str(tmp_path / f"report{demos_}"))["summary"]
         assert not summary["heldout"]["logged"] and why in summary["heldout"]["why"], summary["heldout"]
         assert all("heldout_loss" not in e for e in summary["evaluations"])
+
+
+@pytest.mark.slow      # ~35 s: the lanes' program; the fast set checks the lanes with a stand-in evaluation
+def test_a_batch_of_seeds_logs_each_seeds_loss_on_its_own_set(oracle_demos, tmp_path):
+    """`ttmjx train --seeds 2`'s evaluation (training_evaluation_seeds with the lanes' configs):
+    each seed's logged loss is that of its own checkpoint on its own held-out set, in its directory."""
+    from eval.evaluate import training_evaluation_seeds
+    from training.seeds import SeedRuns, seed_configs
+    base = dataclasses.replace(runconfig.tiny(), demo_dir=oracle_demos, demo_source="oracle",
+                               run_dir=str(tmp_path / "batch"))
+    cfgs = seed_configs(base, 2)
+    SeedRuns(cfgs, training_evaluation_seeds(base, heldout=cfgs), progress=False,
+             parent=base.run_dir).run(max_iterations=2)           # the LFP evaluation ends the pretraining
+    logged = []
+    for c in cfgs:
+        row = rows(c)[1]
+        assert record.load(os.path.join(c.run_dir, HELDOUT_DIR))[1]["seed"] == c.seed + HELDOUT_SEED_OFFSET
+        alone = HeldOut([c]).metrics(jax.tree.map(lambda x: x[None], trained_params(c)))[0]
+        assert row["eval_heldout_loss"] == pytest.approx(alone["heldout_loss"], rel=1e-5)
+        logged.append(row["eval_heldout_loss"])
+    assert logged[0] != logged[1]
