@@ -97,6 +97,10 @@ def test_the_report_draws_the_heldout_loss(run, tmp_path):
         assert json.load(f)["heldout"]["logged"]
     with open(out["png"], "rb") as f:
         assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+    # and the run's TensorBoard log has it beside the other evaluation scalars (training.runlog)
+    board = os.path.join(run.run_dir, "tensorboard")
+    events = b"".join(open(os.path.join(board, f), "rb").read() for f in os.listdir(board))
+    assert b"eval_heldout_loss" in events and b"eval_member1_heldout_loss" in events
 
 
 def test_a_run_without_demonstrations_has_none_and_the_report_says_so(run, tmp_path):
