@@ -33,10 +33,11 @@ class TrainConfig:
     # boundaries of the table improved performance in simulation by ~20% when the goal is less
     # than 20cm from the edges". The paper gives no margin; 0.2 m spans that band.
     practice_goal_margin: float = 0.2
-    # How practice goals are drawn: "uniform" over that region (the paper); "frontier", a share
-    # frontier_fraction of each round's goals moved to the least dense of the pool's achieved
-    # landings, jittered, within the same region (MEGA, arXiv 2007.02832; training.frontier): the
-    # goals just beyond what the policy reaches, where a uniform draw rarely aims (issue #44).
+    # How practice goals are drawn: "uniform" over the half extended by practice_goal_margin (the
+    # paper); "frontier", a share frontier_fraction of each round's goals moved to the least dense
+    # of the pool's achieved landings, jittered, within the same region (MEGA, arXiv 2007.02832;
+    # training.frontier): goals just beyond what the policy reaches, where a uniform draw rarely
+    # aims (issue #44).
     practice_goals: Literal[PRACTICE_GOALS] = "uniform"
     # Share of each round's practice goals drawn from the frontier with practice_goals="frontier"
     # (the rest stay uniform, so that every region keeps being practised).
