@@ -715,32 +715,20 @@ def robot_parity(a: RobotParityArgs) -> None:
 
 
 def robot_serve(a: RobotServeArgs) -> None:
-    from deploy.robot.contract import contract_from_world
     from deploy.robot.drivers.config import load_cell_config
     from deploy.sim.serve import check_ports, make_station, parse_faults, serve
+    from deploy.sim.serve_setup import served_station
     cell = load_cell_config(a.config)
     faults = parse_faults(a.faults)
     check_ports(cell)                  # before the station's slow start
-    timing_info = None
-    if a.policy is not None:
-        from deploy.sim.station import load_for_station, resolve_timing
-        loaded = load_for_station(a.policy, a.distribution)   # its timing record is required
-        cfg, contract = loaded.cfg, loaded.contract
-        timing, timing_info = resolve_timing(loaded, a.timing, a.allow_untrained_timing)
-    else:
-        from deploy.robot.timing_check import profile_timing
-        timing = profile_timing(a.timing)
-        cfg = World() if a.control_hz is None else World(control_hz=a.control_hz)
-        contract = contract_from_world(cfg, cfg.control_hz)
-        if a.distribution:
-            cfg = cfg.with_throws(a.distribution)
-    station = make_station(cfg, contract, a.seed, timing)
-    if timing_info is not None and not timing_info["within_trained"]:
+    served = served_station(a.policy, a.distribution, a.control_hz, a.timing, a.allow_untrained_timing)
+    station = make_station(served.cfg, served.contract, a.seed, served.timing)
+    if served.timing_info is not None and not served.timing_info["within_trained"]:
         from deploy.robot.timing_check import timing_line
-        print(f"ttmjx robot serve: warning: {timing_line(timing_info)}", file=sys.stderr, flush=True)
+        print(f"ttmjx robot serve: warning: {timing_line(served.timing_info)}", file=sys.stderr, flush=True)
     out = serve(cell, station, faults, egm_hz=a.egm_hz, seed=a.seed, duration_s=a.duration_s)
-    if timing_info is not None:
-        out["timing"] = timing_info
+    if served.timing_info is not None:
+        out["timing"] = served.timing_info
     report(a, out, table({k: json.dumps(v) for k, v in out.items()}))
 
 
