@@ -73,6 +73,16 @@ def test_the_heldout_loss_is_logged_deterministic_and_lower_after_training(run, 
     assert first["heldout_loss"] < 0.5 * untrained, (first, untrained)
 
 
+def test_a_damaged_heldout_set_is_collected_again_the_same(run, tmp_path):
+    copy = dataclasses.replace(run, run_dir=str(tmp_path / "run"))
+    shutil.copytree(os.path.join(run.run_dir, HELDOUT_DIR), os.path.join(copy.run_dir, HELDOUT_DIR))
+    npz = os.path.join(copy.run_dir, HELDOUT_DIR, "trajectories.npz")
+    open(npz, "r+b").truncate(100)                                   # a disk that filled mid-write
+    params = jax.tree.map(lambda x: x[None], trained_params(run))
+    assert HeldOut([copy]).metrics(params) == HeldOut([run]).metrics(params)
+    assert record.load(os.path.dirname(npz))[0].size == HELDOUT_DEMOS   # rewritten whole
+
+
 def test_each_lane_of_a_batch_scores_its_own_heldout_set(run, tmp_path, monkeypatch):
     other = dataclasses.replace(run, seed=1, run_dir=str(tmp_path / "seed1"))
     params = trained_params(run)
