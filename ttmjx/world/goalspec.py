@@ -77,11 +77,9 @@ def parse_goals(spec: str) -> np.ndarray:
         raise ValueError("holds no goals ('x,y' or 'x,y;x,y;...')")
     goals = []
     for r in rows:
-        parts = [p for p in r.replace(",", " ").split() if p]
         try:
-            goals.append([float(x) for x in parts] if len(parts) == 2 else None)
+            x, y = (float(p) for p in r.replace(",", " ").split())    # one value or three: ValueError too
         except ValueError:
-            goals.append(None)
-        if goals[-1] is None:
-            raise ValueError(f"goal {r!r} is not two numbers x,y")
+            raise ValueError(f"goal {r!r} is not two numbers x,y") from None
+        goals.append([x, y])
     return check_goals(goals, "goals")
