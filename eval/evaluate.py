@@ -1,5 +1,6 @@
 """Evaluation of trained policies: uniform goals, the five-goal protocol or a user's goal set
-(ttmjx.world.goalfile), no exploration noise; an ensemble plays the goals in equal blocks, one block per
+(a --goals value in the grammar of ttmjx.world.goalspec, shared with `ttmjx robot run`), no
+exploration noise; an ensemble plays the goals in equal blocks, one block per
 member. Scoring is the world's one strict goal-metrics function (ttmjx.world.goals); `--out`
 writes the per-episode record (eval.report)."""
 from __future__ import annotations

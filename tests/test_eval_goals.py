@@ -265,9 +265,11 @@ def test_eval_plays_every_form():
 
 
 def test_eval_reads_inline_goals_as_it_reads_them_from_a_file(tmp_path):
-    csv_path, _ = write_goals(tmp_path, np.float32([[0.7, 0.3], [0.4, -0.5]]))
+    csv_path, npy_path = write_goals(tmp_path, np.float32([[0.7, 0.3], [0.4, -0.5]]))
     inline = cli_json("eval", RUN, "--goals", INLINE, "--seed", "3", "--json")
-    assert inline["goals"] == 2 and inline == cli_json("eval", RUN, "--goals", csv_path, "--seed", "3", "--json")
+    assert inline["goals"] == 2
+    for path in (csv_path, npy_path):
+        assert cli_json("eval", RUN, "--goals", path, "--seed", "3", "--json") == inline, path
 
 
 BAD_GOALS = ["abc", "0", "-3", "0.7", "nan,0", "5,5", "", "{tmp}/missing.csv", "{tmp}/goals.txt", "{tmp}/wide.npy"]
