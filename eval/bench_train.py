@@ -4,8 +4,10 @@ The pieces of one round of S seeds trained as one program (training/seeds.py), e
 after a first call that compiles it: the practice rollout, relabel + insert into the pools,
 the S updates, the whole round as training runs it (on MJX one compiled program), and the
 evaluation. From them: trajectories and updates per second, compile time, peak device memory
-and the projected wall time of the preset's whole run (its schedule of pretraining chunks,
-practice rounds and evaluations; demonstrations and checkpoints not counted).
+and the projected wall time of the preset's whole run: its setup as the run does it (the
+demonstrations collected, the starting states built and saved), its schedule of pretraining
+chunks, practice rounds and evaluations, and its checkpoints (a save timed on the starting pool;
+later saves write fuller pools).
 """
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ from eval.evaluate import training_evaluation_seeds
 from training.cache import add_episodes
 from training.practice import THROW_BLOCK, practice_policy
 from training.runconfig import preset
-from training.seeds import SeedRuns, seed_configs, stacked
+from training.seeds import SeedRuns, seed_configs
 from training.trainer import is_eval_iteration, practice_iterations, pretrain_iterations, total_iterations
 from training.update import acting_params
 from ttmjx.world.env import uniform_goals
@@ -52,12 +54,12 @@ def peak_memory() -> dict:
     return out
 
 
-def bench_training(name: str, seeds: int = 1, reps: int = 2, demos: int | None = 256, backend: str | None = None,
+def bench_training(name: str, seeds: int = 1, reps: int = 2, demos: int | None = None, backend: str | None = None,
                    log=print) -> dict:
     """The round of preset `name` with `seeds` seeds in one program -> figures (seconds, rates;
     `throws_block_s` solves the throws of THROW_BLOCK rounds, once per that many rounds).
-    `demos` caps the demonstrations collected to fill the pools (they only set the pool's
-    contents, not a round's cost)."""
+    `demos` caps the demonstrations collected (None: the preset's, so that the setup is timed as
+    the run does it)."""
     scratch = tempfile.mkdtemp(prefix="ttmjx-bench-")   # the seeds' demonstrations; removed at the end
     try:
         return _bench(name, seeds, reps, demos, backend, log, scratch)
@@ -71,13 +73,16 @@ def _bench(name: str, seeds: int, reps: int, demos: int | None, backend: str | N
                               backend=backend or cfg.backend, run_dir=os.path.join(scratch, name))
     t0 = time.perf_counter()
     runs = SeedRuns(seed_configs(cfg, seeds), progress=False, log=log)
-    ck = stacked([r.initial() for r in runs.runs])
+    ck = jax.block_until_ready(runs.start())   # as the run starts: demonstrations, states, first saves
     setup_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    runs.save(ck._replace(counters=ck.counters._replace(iteration=ck.counters.iteration + 1)))
+    save_s = time.perf_counter() - t0
     pr, be, w, m = runs.practice, runs.backend, cfg.world, cfg.episodes_per_ssp
     base = np.asarray(ck.key)
     keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(base, 0)
     out = {"preset": name, "seeds": seeds, "backend": be.name, "episodes_per_round": m * seeds,
-           "updates_per_round": cfg.steps_between_ssp * seeds, "setup_s": setup_s,
+           "updates_per_round": cfg.steps_between_ssp * seeds, "setup_s": setup_s, "save_s": save_s,
            "device": be.kind.device()}
 
     def piece(label: str, fn):
@@ -101,8 +106,9 @@ def _bench(name: str, seeds: int, reps: int, demos: int | None, backend: str | N
     piece("evaluation", lambda: evaluate(params, be, keys))
     del cache, traj
 
-    n_pre, n_prac = pretrain_iterations(cfg), practice_iterations(cfg)
-    n_eval = sum(is_eval_iteration(cfg, i) for i in range(total_iterations(cfg)))
+    n_pre, n_prac, n_tot = pretrain_iterations(cfg), practice_iterations(cfg), total_iterations(cfg)
+    n_eval = sum(is_eval_iteration(cfg, i) for i in range(n_tot))
+    n_save = sum((i + 1) % cfg.checkpoint_every == 0 or i + 1 == n_tot for i in range(n_tot))
     compile_s = sum(max(out[f"{p}_first_call_s"] - out[f"{p}_s"], 0.0)
                     for p in ("round", "updates", "evaluation") if f"{p}_s" in out)
     per_round = out["round_s"]
@@ -111,8 +117,8 @@ def _bench(name: str, seeds: int, reps: int, demos: int | None, backend: str | N
         "updates_per_s": cfg.steps_between_ssp * seeds / per_round if cfg.practice else 0.0,
         "compile_s": compile_s,
         "schedule": {"pretrain_chunks": n_pre, "practice_rounds": n_prac, "evaluations": n_eval,
-                     "total_trajectories": cfg.total_trajectories},
-        "projected_run_s": compile_s + n_pre * out.get("updates_s", 0.0) + n_prac * per_round
-                           + n_eval * out["evaluation_s"],
+                     "checkpoints": n_save, "total_trajectories": cfg.total_trajectories},
+        "projected_run_s": setup_s + compile_s + n_pre * out.get("updates_s", 0.0) + n_prac * per_round
+                           + n_eval * out["evaluation_s"] + n_save * save_s,
         **peak_memory()})
     return out

@@ -15,7 +15,7 @@ import pytest
 from eval.evaluate import training_evaluation, training_evaluation_seeds
 from training import checkpoint, mesh, runconfig
 from training.runconfig import from_json, to_json
-from training.seeds import SeedRuns, check_one_batch, padded, program_key
+from training.seeds import SeedRuns, check_one_batch, program_key
 from training.trainer import Run
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -25,14 +25,14 @@ ITERATIONS = 3   # tiny: two pretraining chunks (the LFP evaluation after the se
 
 def lane_configs(demo_dir, root) -> list:
     """Four lanes of one program: GoalsEye seed 0 (tiny's practice noise, b = 0.2); LFP (practice
-    off) seed 0; GoalsEye seed 1 at twice the learning rate, a moving average of decay 0.5 and
-    b = 0.1; GoalsEye seed 1 without practice noise."""
+    off) seed 0; GoalsEye seed 1 at twice the learning rate, a moving average of decay 0.5,
+    b = 0.1 and half of each batch from the demonstrations; GoalsEye seed 1 without practice noise."""
     base = dataclasses.replace(runconfig.tiny(), demo_dir=demo_dir, demo_source="oracle")
     return [dataclasses.replace(base, seed=0, run_dir=os.path.join(root, "goalseye-seed0")),
             dataclasses.replace(base, seed=0, practice=False, run_dir=os.path.join(root, "lfp-seed0")),
             dataclasses.replace(base, seed=1, run_dir=os.path.join(root, "fast-seed1"),
                                 train=dataclasses.replace(base.train, learning_rate=2 * base.train.learning_rate,
-                                                          ema_decay=0.5, action_noise=0.1)),
+                                                          ema_decay=0.5, action_noise=0.1, demo_fraction=0.5)),
             dataclasses.replace(base, seed=1, run_dir=os.path.join(root, "quiet-seed1"),
                                 train=dataclasses.replace(base.train, action_noise=0.0))]
 
@@ -139,8 +139,6 @@ def test_lanes_over_four_devices_compute_what_one_device_does(one_program, tmp_p
 
 def test_lane_padding_and_device_counts():
     assert [mesh.padded_lanes(n, 4) for n in (1, 4, 5, 15)] == [4, 4, 8, 16]
-    tree = {"w": np.arange(6.0).reshape(3, 2)}
-    np.testing.assert_array_equal(np.asarray(padded(tree, 4)["w"]), [[0, 1], [2, 3], [4, 5], [4, 5]])
     n = jax.local_device_count()
     assert mesh.lane_layout(3).mesh.size == min(3, n)
     with pytest.raises(ValueError, match=rf"--devices {n + 1} but only {n} cpu device\(s\) are available"):

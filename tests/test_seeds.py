@@ -198,6 +198,9 @@ def test_the_training_benchmark_times_every_piece_of_a_batched_round():
     assert out["episodes_per_round"] == 2 * cfg.episodes_per_ssp
     assert out["trajectories_per_s"] == pytest.approx(2 * cfg.episodes_per_ssp / out["round_s"])
     sch = out["schedule"]
-    assert (sch["pretrain_chunks"], sch["practice_rounds"]) == (2, 4)
-    assert out["projected_run_s"] >= sch["practice_rounds"] * out["round_s"] + sch["evaluations"] * out["evaluation_s"]
+    assert (sch["pretrain_chunks"], sch["practice_rounds"], sch["checkpoints"]) == (2, 4, 6)
+    # the whole run: its setup (demonstrations, starting states and saves) and checkpoints included
+    assert out["setup_s"] > 0 and out["save_s"] > 0
+    assert out["projected_run_s"] >= (out["setup_s"] + sch["practice_rounds"] * out["round_s"]
+                                      + sch["evaluations"] * out["evaluation_s"] + sch["checkpoints"] * out["save_s"])
     assert out["peak_host_rss_gib"] > 0

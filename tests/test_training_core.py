@@ -359,6 +359,21 @@ def test_balanced_sampling_draws_each_landing_cell_equally_often():
         TrainConfig(balance=3)
 
 
+def test_a_lanes_demo_fraction_as_data_draws_what_the_constant_draws():
+    """In a batch of lanes the demonstrations' share is a traced [] array (training.update.Knobs):
+    at 0 it must draw the paper's uniform rows, and at f > 0 the rows of the constant f, so that a
+    lane is the same experiment as that run alone; the same for landing-balanced sampling."""
+    c = empty_cache(100, 4)
+    c = c._replace(demo=jnp.zeros(100, bool).at[:10].set(True), size=jnp.int32(60), count=jnp.int32(60),
+                   goal=jax.random.uniform(jax.random.PRNGKey(3), (100, 2)))
+    traced = jax.jit(sample_episodes, static_argnums=(2, 4))
+    for balance in (0.0, 1.0):
+        for f in (0.0, 0.5):
+            want = sample_episodes(jax.random.PRNGKey(5), c, 64, f, balance)
+            got = traced(jax.random.PRNGKey(5), c, 64, jnp.float32(f), balance)
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+
+
 # --- checkpoints ----------------------------------------------------------------------------
 
 def test_checkpoint_round_trip_is_bit_exact_and_keeps_the_latest(tmp_path, cache):

@@ -148,6 +148,12 @@ def single_device() -> Layout:
     return _layout(1, 1)
 
 
+def one_device(device) -> Layout:
+    """The mesh of one given device: where a lane's state is built before the lanes of its block
+    are stacked there (training.seeds)."""
+    return Layout(jax.make_mesh((1, 1), (MEMBER, BATCH), (AxisType.Auto, AxisType.Auto), devices=[device]))
+
+
 def lane_layout(lanes: int, devices: int | None = None) -> Layout:
     """The layout of a program over `lanes` independent runs (training.seeds): a 1-D mesh
     (`lane`) over `devices` devices (None: every local device, at most one per lane), each device

@@ -12,6 +12,7 @@ import numpy as np
 from models.normalizer import Normalizer, identity_normalizer, normalizer_from_data
 from models.policy import init_params, make_policy
 from training.cache import Cache, add_episodes, empty_cache
+from training.checkpoint import steps as checkpoint_steps
 from training.data import data_normalizer, keep_for_training, relabel
 from training.runconfig import RunConfig
 from ttmjx.tools import demos
@@ -21,9 +22,40 @@ from ttmjx.world.config import World
 from ttmjx.world.env import uniform_goals
 
 
-# The last demonstrations collected in this process, by (world, source, count, seed, backend):
-# a table's arms of one seed (GoalsEye and LFP at equal updates) start in turn from the same ones.
+# The demonstrations collected last in this process, by (world, source, count, seed, backend):
+# the lanes of a table, collected together (`collect_for_lanes`), and a table's programs that
+# start from the same seeds' demonstrations (LFP at equal data after GoalsEye) take them from here.
 _COLLECTED: dict = {}
+
+
+def _collect_key(cfg: RunConfig) -> tuple:
+    return (cfg.world, cfg.demo_source, cfg.demos, cfg.seed + 10_000, resolve_backend(cfg.backend))
+
+
+def needs_collecting(cfg: RunConfig) -> bool:
+    """Whether cfg's run starts by collecting demonstrations: it has some, no dataset directory,
+    none saved in its run directory and no checkpoint to resume from."""
+    return (cfg.demos > 0 and not cfg.demo_dir
+            and not os.path.exists(os.path.join(cfg.run_dir, "demos", "trajectories.npz"))
+            and not checkpoint_steps(os.path.join(cfg.run_dir, "checkpoints")))
+
+
+def collect_for_lanes(cfgs: list[RunConfig], progress: bool) -> None:
+    """Collect the demonstrations of every run in `cfgs` that starts by collecting, the runs of a
+    source and count together (demos.collect_lanes: one rollout per chunk for all their seeds),
+    into the memo `load_demos` reads: so a table's setup plays its lanes' demonstrations at once."""
+    want = {_collect_key(c): c for c in cfgs if needs_collecting(c)}
+    kept = {k: v for k, v in _COLLECTED.items() if k in want}
+    groups: dict = {}
+    for k, c in want.items():
+        if k not in kept:
+            groups.setdefault((c.world, c.demo_source, c.demos, k[-1]), []).append(k)
+    for (world, source, n, backend), keys in groups.items():
+        trajs = demos.collect_lanes(world, source, n, [k[3] for k in keys], backend, progress=progress)
+        kept.update(zip(keys, trajs))
+    if want:
+        _COLLECTED.clear()
+        _COLLECTED.update(kept)
 
 
 def load_demos(cfg: RunConfig, progress: bool) -> record.Trajectories | None:
@@ -40,11 +72,10 @@ def load_demos(cfg: RunConfig, progress: bool) -> record.Trajectories | None:
     path = os.path.join(cfg.run_dir, "demos")
     if os.path.exists(os.path.join(path, "trajectories.npz")):
         return record.load(path)[0]
-    backend = resolve_backend(cfg.backend)
-    key = (cfg.world, cfg.demo_source, cfg.demos, cfg.seed + 10_000, backend)
-    if key not in _COLLECTED:   # the lanes of a table that share a seed share its demonstrations
+    key = _collect_key(cfg)
+    if key not in _COLLECTED:
         _COLLECTED.clear()
-        _COLLECTED[key] = demos.collect(cfg.world, cfg.demo_source, cfg.demos, cfg.seed + 10_000, backend,
+        _COLLECTED[key] = demos.collect(cfg.world, cfg.demo_source, cfg.demos, cfg.seed + 10_000, key[-1],
                                         progress=progress)
     traj = _COLLECTED[key]
     record.save(path, traj, {"source": cfg.demo_source, "source_version": demos.SOURCE_VERSION,

@@ -108,6 +108,13 @@ class RunConfig:
 MAX_SEED = 2 ** 32 - 1
 
 
+# Practice as fixed on the CPU main job's development seeds (docs/RESULTS.md, "Practice that
+# lifts"): 80% of every batch from the demonstrations, practice exploring with the held offset
+# noise b = 0.2. The GPU presets take the same (`ttmjx ablate practice`'s goalseye-paper-pool arm
+# is the paper's uniform pool without noise).
+PRACTICE_POOL = {"demo_fraction": 0.8, "action_noise": 0.2}
+
+
 def _cpu_default() -> RunConfig:
     """Sized so that the whole main job (demonstrations included) is a short experiment on 2 CPU
     cores (its measured time: docs/BENCHMARKS.md)."""
@@ -125,7 +132,7 @@ def _cpu_default() -> RunConfig:
         # (docs/RESULTS.md, "Practice that lifts"): the paper's uniform pool and no noise ended
         # 6-9 points below GCBC on the demonstrations alone at the same updates.
         train=TrainConfig(window=96, batch_size=32, learning_rate=3e-4, members=2, capacity=16384,
-                          action_noise=0.2, demo_fraction=0.8, ema_decay=0.995),
+                          ema_decay=0.995, **PRACTICE_POOL),
         demos=1000, pretrain_steps=2000, steps_between_ssp=200, episodes_per_ssp=200,
         total_trajectories=7000, eval_every=1000, run_dir="runs/default")
 
@@ -141,14 +148,15 @@ def paper_sim() -> RunConfig:
         preset="paper-sim",
         world=World(ball_velocity_obs=True, timing=CELL_TRAINING).with_throws("any"),
         policy=PolicyConfig(kind="lstm", hidden=1024, layers=2, obs_size=16),
+        # The pool and exploration chosen on the CPU's development seeds (PRACTICE_POOL).
         train=TrainConfig(window=96, batch_size=64, learning_rate=1e-4, members=1, capacity=131_072,
-                          ema_decay=0.995),
+                          ema_decay=0.995, **PRACTICE_POOL),
         # A rollout on MJX is latency-bound (1,000 episodes take about as long as 4,000:
         # docs/BENCHMARKS.md), so rounds are large: 4,000 episodes then 200 updates (the paper
         # publishes no ratio of updates to trajectories; docs/RESULTS.md).
-        # The striker: the shipped `paper` bootstrap is built
-        # for narrow throws only (ttmjx demos --source paper --rebuild all --distribution any).
-        demos=3600, demo_source="striker", pretrain_steps=2000, steps_between_ssp=200, episodes_per_ssp=4000,
+        # The paper's bootstrap procedure, as every preset (its shipped policy was built on narrow
+        # throws and plays any-ball throws as it can; `--demo-source striker` is the scripted one).
+        demos=3600, demo_source="paper", pretrain_steps=2000, steps_between_ssp=200, episodes_per_ssp=4000,
         total_trajectories=120_000, eval_every=8000, checkpoint_every=5, run_dir="runs/paper-sim")
 
 
@@ -159,15 +167,15 @@ def paper_sim_new() -> RunConfig:
     The frames carry the ball velocity ([8, 16], as the LSTM preset's 16 values): without it GCBC
     on any-ball throws hits far fewer balls (docs/RESULTS.md). The paper's action noise is off by
     default: its first form (a + z with the true joints observed) was integrated by the closed
-    loop into a drift; the noise is now a hidden calibration offset (models.policy.with_action_noise);
-    `ttmjx ablate noise` measures that form (--train.action-noise B turns it on)."""
+    loop into a drift; the noise is a hidden calibration offset (models.policy.with_action_noise),
+    b = 0.2 with the CPU's pool (PRACTICE_POOL); `ttmjx ablate noise` measures the forms."""
     return RunConfig(
         preset="paper-sim-new",
         world=World(ball_velocity_obs=True, timing=CELL_TRAINING).with_throws("any"),
         policy=PolicyConfig(kind="framestack", hidden=1024, layers=2, obs_size=16, frame_stack=8),
         train=TrainConfig(window=96, batch_size=64, learning_rate=3e-4, members=10, capacity=131_072,
-                          action_noise=0.0, ema_decay=0.995),
-        demos=3600, demo_source="striker", pretrain_steps=2000, steps_between_ssp=200, episodes_per_ssp=4000,
+                          ema_decay=0.995, **PRACTICE_POOL),
+        demos=3600, demo_source="paper", pretrain_steps=2000, steps_between_ssp=200, episodes_per_ssp=4000,
         total_trajectories=100_000, eval_every=8000, checkpoint_every=5, run_dir="runs/paper-sim-new")
 
 

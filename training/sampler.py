@@ -76,20 +76,27 @@ def sample_balanced(key, cache: Cache, batch_size: int, demo_fraction: float, ba
     demonstrations with probability max(f, their share of the weight), balanced within each group."""
     w = balanced_weights(cache, balance)
     k_grp, k_demo, k_prac = jax.random.split(key, 3)
-    if demo_fraction == 0.0:
+    if is_zero(demo_fraction):
         return draw_rows(k_prac, w, batch_size)
     w_demo, w_prac = jnp.where(cache.demo, w, 0.0), jnp.where(cache.demo, 0.0, w)
     s_demo, s_prac = w_demo.sum(), w_prac.sum()
     p_demo = jnp.maximum(demo_fraction, s_demo / jnp.maximum(s_demo + s_prac, 1e-30))
     from_demo = jax.random.uniform(k_grp, (batch_size,)) < p_demo
     row = jnp.where(from_demo, draw_rows(k_demo, w_demo, batch_size), draw_rows(k_prac, w_prac, batch_size))
-    return jnp.where((s_demo > 0) & (s_prac > 0), row, draw_rows(k_prac, w, batch_size))
+    # a lane's f = 0 (an array in a batch of lanes) draws exactly what the branch above draws
+    return jnp.where((s_demo > 0) & (s_prac > 0) & (demo_fraction > 0), row, draw_rows(k_prac, w, batch_size))
+
+
+def is_zero(demo_fraction) -> bool:
+    """Whether demo_fraction is the constant 0 (one run's config); a lane's array is data."""
+    return isinstance(demo_fraction, (int, float)) and demo_fraction == 0.0
 
 
 def sample_episodes(key, cache: Cache, batch_size: int, demo_fraction: float = 0.0, balance: float = 0.0):
     """[B] int32 cache rows to train on (jit-compatible).
 
-    demo_fraction = 0: uniform over the cache's `size` rows (the paper). demo_fraction = f > 0:
+    demo_fraction (a float, or a lane's [] array: training.update.Knobs) = 0: uniform over the
+    cache's `size` rows (the paper). demo_fraction = f > 0:
     each row is a demonstration with probability max(f, share of demonstrations in the cache),
     uniform within its group, so practice adds to the pool without drowning the demonstrations
     (practice episodes are the policy's own, less precise strokes). Falls back to uniform while
@@ -104,7 +111,7 @@ def sample_episodes(key, cache: Cache, batch_size: int, demo_fraction: float = 0
     k_all, k_grp, k_idx = jax.random.split(key, 3)
     size = jnp.maximum(cache.size, 1)
     uniform = jax.random.randint(k_all, (batch_size,), 0, size)
-    if demo_fraction == 0.0:
+    if is_zero(demo_fraction):
         return uniform
     filled = jnp.arange(cache.capacity) < cache.size
     demo, prac = filled & cache.demo, filled & ~cache.demo
@@ -115,7 +122,7 @@ def sample_episodes(key, cache: Cache, batch_size: int, demo_fraction: float = 0
     n_grp = jnp.where(from_demo, n_demo, n_prac)
     r = jnp.minimum((u * n_grp).astype(jnp.int32), jnp.maximum(n_grp - 1, 0))
     row = jnp.where(from_demo, nth_true(demo, r), nth_true(prac, r))
-    return jnp.where((n_demo > 0) & (n_prac > 0), row, uniform).astype(jnp.int32)
+    return jnp.where((n_demo > 0) & (n_prac > 0) & (demo_fraction > 0), row, uniform).astype(jnp.int32)
 
 
 def sample_subsequences(key, cache: Cache, k: int, batch_size: int,

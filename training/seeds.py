@@ -2,7 +2,7 @@
 
 A run is a function of (config, key); L runs (lanes) that differ only in their seed, in the
 settings an ablation varies as data (LANE_KNOBS: practice on or off, learning rate, moving
-average, the practice noise's scale; training.update.Knobs) and, with the same schedule, in the demonstrations they start
+average, the practice noise's scale, the demonstrations' share of a batch; training.update.Knobs) and, with the same schedule, in the demonstrations they start
 from (`program_key`), stack every array of their state (weights, optimizer states, moving
 averages, caches, keys, counters) on a leading [L] axis, and each compiled piece of training
 (the practice round, the update loop, the throw sampler, the evaluation rollout) is the one-run
@@ -32,13 +32,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from training import budget, mesh, runlog
+from training import budget, mesh, pool, runlog
 from training.checkpoint import Checkpointed, Counters
 from training.practice import Practice, stats_row
 from training.runconfig import RunConfig, to_json
@@ -57,8 +58,10 @@ EvaluateSeeds = Callable[..., list]
 # demonstrations and the same schedule (`program_key`): the demonstrations ablation's arms.
 PER_SEED = ("seed", "run_dir", "devices")
 PER_RUN_DATA = ("demos", "demo_source", "demo_dir")
+# Lanes whose checkpoints are written at once (each save's compression is multi-threaded too).
+SAVE_THREADS = 8
 # Settings that are data of a lane (dotted config fields): the lanes of one program may differ in them.
-LANE_KNOBS = ("practice", "train.learning_rate", "train.ema_decay", "train.action_noise")
+LANE_KNOBS = ("practice", "train.learning_rate", "train.ema_decay", "train.action_noise", "train.demo_fraction")
 
 
 def program_fields(cfg: RunConfig) -> dict:
@@ -118,16 +121,22 @@ def stacked(trees: list):
 
 
 def seed_slice(tree, s: int):
-    """Seed s of a stacked tree."""
-    return jax.tree.map(lambda x: x[s], tree)
+    """Seed s of a stacked tree, taken from the device that holds it: a slice of the one shard
+    whose block of lanes contains s, an operation on that device alone (slicing the global array
+    is a program over every device, and such programs started from several threads at once
+    deadlock in their collectives)."""
+    return jax.tree.map(lambda x: _lane(x, s), tree)
 
 
-def padded(tree, lanes: int):
-    """A stacked tree [S, ...] with its last lane repeated up to `lanes` lanes."""
-    s = jax.tree.leaves(tree)[0].shape[0]
-    if lanes == s:
-        return tree
-    return jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], lanes - s, axis=0)]), tree)
+def _lane(x, s: int):
+    shards = getattr(x, "addressable_shards", None)
+    if not shards:
+        return x[s]
+    for sh in shards:
+        lo, hi, _ = sh.index[0].indices(x.shape[0])
+        if lo <= s < hi:
+            return sh.data[s - lo]
+    raise ValueError(f"lane {s} is on no local device (lane axis {x.shape[0]})")
 
 
 class SeedRuns:
@@ -149,9 +158,11 @@ class SeedRuns:
         # refused with the estimate before anything is compiled: each device holds its block of lanes
         budget.check_fits(cfg, seeds=self.lanes // self.devices, devices=self.devices)
         self.backend = Backend(cfg.world, resolve_backend(cfg.backend))
-        # each lane's Run makes and restores its own state on one device; `place` then lays the
-        # stacked lanes over the lane mesh
-        self.runs = [Run(c, None, progress, log, shared=(self.backend, mesh.single_device())) for c in cfgs]
+        # each lane's Run makes and restores its own state on the device of its block, where
+        # `assemble` stacks the block: no device ever holds more than its own lanes
+        self.per_device = self.lanes // self.devices
+        self.runs = [Run(c, None, progress, log, shared=(self.backend, mesh.one_device(self.device_of(i))))
+                     for i, c in enumerate(cfgs)]
         self.cfgs = cfgs + [cfgs[-1]] * (self.lanes - self.seeds)
         self.knobs = lane_knobs([c.train for c in self.cfgs])
         self.practice = Practice(cfg.world, cfg.policy, cfg.train, self.backend, cfg.episodes_per_ssp,
@@ -168,19 +179,42 @@ class SeedRuns:
             files.write_json(os.path.join(self.parent, SEEDS_FILE),
                              {"seeds": [r.cfg.seed for r in self.runs],
                               "run_dirs": [os.path.relpath(r.cfg.run_dir, self.parent) for r in self.runs]})
+        # the lanes that start afresh collect their demonstrations together, one rollout per chunk
+        pool.collect_for_lanes([r.cfg for r in self.runs], self.progress)
         cks = [r.start() for r in self.runs]
         its = [int(c.counters.iteration) for c in cks]
         low = min(its)
         cks = [c if i == low else r.rewind(low) for r, c, i in zip(self.runs, cks, its)]
-        return self.place(padded(stacked(cks), self.lanes))
+        return self.assemble(cks)
+
+    def device_of(self, lane: int):
+        """The device that computes `lane` (lanes are laid in blocks of `per_device`)."""
+        return self.layout.mesh.devices.flat[lane // self.per_device]
+
+    def assemble(self, cks: list[Checkpointed]) -> Checkpointed:
+        """The lanes' states, each on its block's device, -> one stacked tree [L, ...] split over
+        the lane mesh (padded with copies of the last lane): each block is stacked on its own
+        device, so setting up many lanes never gathers them all on one."""
+        cks = cks + [cks[-1]] * (self.lanes - len(cks))
+        blocks = []
+        for d in range(self.devices):
+            dev = self.layout.mesh.devices.flat[d]
+            block = cks[d * self.per_device:(d + 1) * self.per_device]
+            blocks.append(stacked([jax.device_put(c, dev) for c in block]))
+        sharding = self.layout.sharding(mesh.LANE)
+        return jax.tree.map(lambda *xs: jax.make_array_from_single_device_arrays(
+            (self.lanes,) + xs[0].shape[1:], sharding, list(xs)), *blocks)
 
     def place(self, tree):
         """A stacked tree [L, ...] split over the lane layout's devices, a block of lanes each."""
         return jax.device_put(tree, self.layout.sharding(mesh.LANE))
 
     def save(self, ck: Checkpointed):
-        for s, r in enumerate(self.runs):
-            r.save(seed_slice(ck, s))
+        """Every lane's checkpoint in its own run directory, several at once: Orbax spends most
+        of a save compressing the pool on the host (a paper-sim pool is 2 GiB), which threads do
+        side by side."""
+        with ThreadPoolExecutor(min(self.seeds, SAVE_THREADS)) as ex:
+            list(ex.map(lambda s: self.runs[s].save(seed_slice(ck, s)), range(self.seeds)))
 
     # -- one iteration ----------------------------------------------------------------------
     def step(self, ck: Checkpointed, it: int) -> tuple[Checkpointed, list[dict]]:

@@ -27,7 +27,7 @@ import numpy as np
 from training import budget, checkpoint, mesh, pool, runlog
 from training.checkpoint import Checkpointed, Counters
 from training.practice import Practice, stats_row
-from training.runconfig import BOOKKEEPING, RunConfig, to_json
+from training.runconfig import BOOKKEEPING, RunConfig, from_json, to_json
 from training.update import acting_params, init_train_state
 from ttmjx.tools.demos import renamed
 from ttmjx.world import files
@@ -127,6 +127,10 @@ def check_same_config(cfg: RunConfig, saved: dict) -> None:
     mine = to_json(cfg)
     if "demo_source" in saved:   # an old name ("scripted") means today's "oracle"
         saved = {**saved, "demo_source": renamed(saved["demo_source"])}
+    try:   # fields added since the run was saved read as their defaults, which compute as before
+        saved = {**saved, **to_json(from_json(saved))}
+    except (TypeError, KeyError, ValueError):
+        pass
     diff = {k for k in set(saved) | set(mine) if saved and saved.get(k) != mine.get(k) and k not in RESUME_MAY_CHANGE}
     if diff:
         raise ValueError(f"{cfg.run_dir} holds a run with a different config (fields {sorted(diff)}); "

@@ -47,12 +47,13 @@ class Knobs(NamedTuple):
     ema_decay: Any
     ema_rate: Any
     action_noise: Any     # b of practice's held action noise (training.practice)
+    demo_fraction: Any    # the demonstrations' share of each batch (training.sampler)
 
 
 def knobs_of(tcfg: TrainConfig) -> Knobs:
     """One run's knobs: its config's values, as Python floats."""
     return Knobs(float(tcfg.learning_rate), float(tcfg.ema_decay), 1.0 - float(tcfg.ema_decay),
-                 float(tcfg.action_noise))
+                 float(tcfg.action_noise), float(tcfg.demo_fraction))
 
 
 def lane_knobs(tcfgs) -> Knobs:
@@ -94,11 +95,13 @@ def state_sharding(layout: Layout) -> TrainState:
 
 
 def member_update(pcfg: PolicyConfig, tcfg: TrainConfig, params: PolicyParams, opt_state, cache: Cache, key,
-                  place=lambda batch: batch, learning_rate=None):
+                  place=lambda batch: batch, learning_rate=None, demo_fraction=None):
     """One member: sample a batch, one optimizer step -> (params, opt_state, loss []).
-    `place` puts the sampled windows [B, ...] where they are computed on (Layout.constrain_batch)."""
+    `place` puts the sampled windows [B, ...] where they are computed on (Layout.constrain_batch);
+    learning_rate, demo_fraction: a lane's (Knobs), None: the config's."""
+    f = tcfg.demo_fraction if demo_fraction is None else demo_fraction
     batch = place(sample_subsequences(key, cache, tcfg.window, tcfg.batch_size,
-                                      pcfg.input_frames, pcfg.obs_size, tcfg.demo_fraction, tcfg.balance))
+                                      pcfg.input_frames, pcfg.obs_size, f, tcfg.balance))
     loss, grads = jax.value_and_grad(
         lambda net: policy_loss(pcfg, params._replace(net=net), batch))(params.net)
     updates, opt_state = optimizer(tcfg, learning_rate).update(grads, opt_state, params.net)
@@ -111,7 +114,7 @@ def _ensemble_update(pcfg, tcfg, layout: Layout, state: TrainState, cache: Cache
     # spmd_axis_name: the vmapped member axis is the mesh's `member` axis, so the per-member
     # constraint on the windows' [B] axis becomes [N over member, B over batch].
     update = jax.vmap(lambda p, o, k: member_update(pcfg, tcfg, p, o, cache, k, layout.constrain_batch,
-                                                    kn.learning_rate),
+                                                    kn.learning_rate, kn.demo_fraction),
                       spmd_axis_name=layout.member_axis)
     params, opt_state, loss = update(state.params, state.opt_state, keys)
     ema = updated_ema(kn.ema_decay, state.ema, params, kn.ema_rate)

@@ -255,6 +255,37 @@ def collect(cfg: World, source: str, n: int, seed: int, backend: str = "c", chun
     return traj, record.TrueTrack(*(np.concatenate(x) for x in zip(*truths)))
 
 
+def collect_lanes(cfg: World, source: str, n: int, seeds: list[int], backend: str = "c",
+                  progress: bool = False) -> list:
+    """`collect(cfg, source, n, seed, backend)` for several seeds at once -> [S] records, record
+    s with the draws of `collect(..., seeds[s])` (the same chunks, keys and throws), played
+    together by `Backend.rollout_seeds`: the setup of a table's lanes is then one rollout per
+    chunk, not one per lane. As many seeds share a call as fit the backend's demonstration chunk."""
+    if n < 1 or not seeds:
+        raise ValueError(f"collect_lanes: n={n} and {len(seeds)} seeds, expected n >= 1 and at least one seed")
+    policy, params = source_policy(cfg, source)
+    be = backends.Backend(cfg, backend)
+    chunk = be.kind.demo_chunk
+    per_call = max(1, chunk // min(chunk, n))   # seeds whose chunk of throws fit one call
+    out = []
+    bar = _bar(n * len(seeds), progress)
+    for g in range(0, len(seeds), per_call):
+        group = seeds[g:g + per_call]
+        lanes = jax.tree.map(lambda x: jnp.broadcast_to(x, (len(group),) + jnp.shape(x)), params)
+        parts = []
+        for start in range(0, n, chunk):
+            m = min(chunk, n - start)
+            keys = [jax.random.split(jax.random.fold_in(jax.random.PRNGKey(s), start)) for s in group]
+            th = jax.tree.map(lambda *xs: jnp.stack(xs), *[thrower.sample_throws(k[0], cfg, m) for k in keys])
+            rec = be.rollout_seeds(policy, lanes, jnp.stack([k[1] for k in keys]), th,
+                                   np.zeros((len(group), m, 2), np.float32))
+            parts.append(jax.tree.map(np.asarray, rec))
+            bar.update(m * len(group))
+        out += [record.concat([jax.tree.map(lambda x: x[i], p) for p in parts]) for i in range(len(group))]
+    bar.close()
+    return out
+
+
 def truth_arrays(true: record.TrueTrack) -> dict:
     """The arrays a `ttmjx demos` dataset keeps beside its record (record.save's extra): the
     ball's true centre and the true joints at the start of each control step, [B, T, 3] and
