@@ -227,11 +227,14 @@ ABLATIONS: dict[str, Ablation] = {
     # practice rounds replaced by train-only rounds. Equal data: as many demonstrations as
     # GoalsEye sees trajectories (demonstrations + practice), and GoalsEye's updates.
     # lfp-r0.2-updates: LFP with the updates of GoalsEye at 0.2 updates per practice trajectory
-    # (the ratio ablation's r0.2: the same rounds, each train-only).
+    # (the ratio ablation's r0.2: the same rounds, each train-only). goalseye-paper-pool: GoalsEye
+    # as the paper trains it (the pool sampled uniformly, no exploration noise), against this
+    # project's pool and noise (training.runconfig.PRACTICE_POOL); lane data of one program.
     "practice": Ablation(
-        "self-supervised practice against LFP at equal gradient updates, at equal data and at the updates of "
-        "0.2 updates per practice trajectory", "sim",
-        {"goalseye": {}, "lfp-equal-updates": {"practice": False},
+        "self-supervised practice (ours; the paper's uniform pool without noise) against LFP at equal gradient "
+        "updates, at equal data and at the updates of 0.2 updates per practice trajectory", "sim",
+        {"goalseye": {}, "goalseye-paper-pool": {"train.demo_fraction": 0.0, "train.action_noise": 0.0},
+         "lfp-equal-updates": {"practice": False},
          "lfp-equal-data": {"practice": False, "demos": ALL_TRAJECTORIES, "pretrain_steps": GOALSEYE_UPDATES},
          "lfp-r0.2-updates": {"practice": False, "episodes_per_ssp": per_round(0.2),
                               "checkpoint_every": checkpoint_cadence(0.2)}},

@@ -176,5 +176,6 @@ def test_ablations_train_their_arms_that_differ_in_data_as_one_program(tmp_path)
         cells = ablate.plan(name, "tiny", 2, out)
         return [sorted({c.variant for c in g}) for g in table_cells.seed_groups(cells, os.path.join(out, "results"))]
 
-    assert groups("practice") == [["goalseye", "lfp-equal-updates"], ["lfp-equal-data"], ["lfp-r0.2-updates"]]
+    assert groups("practice") == [["goalseye", "goalseye-paper-pool", "lfp-equal-updates"], ["lfp-equal-data"],
+                                  ["lfp-r0.2-updates"]]
     assert groups("noise") == [["b0.05", "b0.1", "b0.2", "off"], ["paper-b0.05", "paper-b0.1", "paper-b0.2"]]
