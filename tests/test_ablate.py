@@ -199,10 +199,10 @@ def test_config_flags_reach_every_cell_before_the_variants_own(tmp_path):
     changed = ablate.cell_overrides(ablate.base_config("practice", "tiny"), a.config, taken=("devices",))
     assert changed == {"train.learning_rate": 5e-4, "demo_source": "striker"}   # in field order; tiny's timing is ideal already
     cells = ablate.plan("practice", "tiny", 2, str(tmp_path / "t"), changed=changed, devices=a.config.devices)
-    assert len(cells) == 8
+    assert len(cells) == 10
     assert all(c.config.demo_source == "striker" and c.config.train.learning_rate == 5e-4 and c.config.devices == 1
                for c in cells)
-    assert [c.config.practice for c in cells[:4]] == [True, False, False, False]   # the variants' own fields win
+    assert [c.config.practice for c in cells[:5]] == [True, True, False, False, False]   # the variants' own fields win
     assert ablate.command_line("practice", "tiny", 2, None, None, None, changed, 1) == \
         "ttmjx ablate practice --scale tiny --seeds 2 --train.learning-rate 0.0005 --demo-source striker --devices 1"
     # the flags start from the ablation's base at its scale: ensembles' full base has 10 members
