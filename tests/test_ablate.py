@@ -200,8 +200,8 @@ def test_config_flags_reach_every_cell_before_the_variants_own(tmp_path):
     assert changed == {"train.learning_rate": 5e-4, "demo_source": "striker"}   # in field order; tiny's timing is ideal already
     cells = ablate.plan("practice", "tiny", 2, str(tmp_path / "t"), changed=changed, devices=a.config.devices)
     assert len(cells) == 10
-    assert all(c.config.demo_source == "striker" and c.config.train.learning_rate == 5e-4 and c.config.devices == 1
-               for c in cells)
+    assert all(c.config.demo_source == "striker" and c.config.train.learning_rate == 5e-4
+               and c.config.devices == 1 for c in cells)
     assert [c.config.practice for c in cells[:5]] == [True, True, False, False, False]   # the variants' own fields win
     assert ablate.command_line("practice", "tiny", 2, None, None, None, changed, 1) == \
         "ttmjx ablate practice --scale tiny --seeds 2 --train.learning-rate 0.0005 --demo-source striker --devices 1"
@@ -209,8 +209,8 @@ def test_config_flags_reach_every_cell_before_the_variants_own(tmp_path):
     full = cli.parse_ablate(["ensembles", "--scale", "full", "--train.members", "5", "--episodes-per-ssp", "4000"])
     assert ablate.cell_overrides(ablate.base_config("ensembles", "full"), full.config) == {"train.members": 5}
     # fields each cell sets itself are refused with the flag to write
-    for flag, says in ((["--seed", "3"], "--seed 3: the cells' seeds"), (["--total-trajectories", "9"], "--trajectories"),
-                       (["--run-dir", "r"], "--out OUT")):
+    for flag, says in ((["--seed", "3"], "--seed 3: the cells' seeds"),
+                       (["--total-trajectories", "9"], "--trajectories"), (["--run-dir", "r"], "--out OUT")):
         with pytest.raises(ValueError, match=says):
             ablate.cell_overrides(ablate.base_config("demos", "tiny"),
                                   cli.parse_ablate(["demos", "--scale", "tiny", *flag]).config)

@@ -8,7 +8,7 @@ the tables apply what changed (eval/ablate.py cell_overrides).
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Callable
 
 from ttmjx.commandline import parse_args
 from training.runconfig import PRESET_NAMES, RunConfig, preset
@@ -63,6 +63,29 @@ def parse_config_args(command: str, cls: type, argv: list[str], default: Any, ba
             raise ValueError(f"{ignored[0]} would be ignored: this run's timing is ideal (--world.timing.ideal-timing, "
                              f"{base_name}), which resets every delay and rate; add --world.timing.no-ideal-timing "
                              f"to use it")
+    return a
+
+
+def parse_cells(command: str, cls: type, argv: list[str], picks: dict | None,
+                base_of: Callable[..., tuple[RunConfig, str]]) -> Any:
+    """`ablate`, `baseline`: tyro on `cls`, the run-configuration flags as `train` reads them,
+    starting from the cells' base `base_of(**picks)` -> (config, its name); `picks` are the
+    arguments that choose it, read from argv by hand (None where argv has none valid: then tyro
+    refuses or prints --help on its own), read again from tyro's parse where it differs (a value
+    such as `--out demos` taken for the ablation). The retired --set is refused, naming the flags
+    to write instead."""
+    refusal = set_refusal(argv)
+    if refusal:
+        raise ValueError(refusal)
+    if picks is None:
+        return parse_args(command, cls, argv)
+    for _ in range(2):
+        base, where = base_of(**picks)
+        a = parse_config_args(command, cls, argv, cls(**picks, config=base), where)
+        read = {k: getattr(a, k) for k in picks}
+        if read == picks:
+            break
+        picks = read
     return a
 
 

@@ -21,7 +21,7 @@ import tyro
 
 from deploy.robot import cli as robot_side
 from ttmjx import commandline
-from ttmjx.commandline import (Command, Flag, Report, check_new_path, check_resumable_dir, fail, parse_args, report,
+from ttmjx.commandline import (Command, Flag, Report, check_new_path, check_resumable_dir, fail, report,
                                table)
 from eval.ablate import ABLATION_NAMES, SCALE_NAMES
 from training.baselines.config import ESConfig, PPOConfig, QTOptConfig, RewardConfig, SACConfig
@@ -506,28 +506,6 @@ def parse_train(argv: list[str]) -> TrainArgs:
     return dataclasses.replace(a, config=overrides.seed_run_dir(a.config, base, argv))
 
 
-def parse_cells(command: str, cls: type, argv: list[str], picks: dict | None, base_of) -> Report:
-    """`ablate`, `baseline`: tyro on `cls`, the run-configuration flags as `train` reads them,
-    starting from the cells' base `base_of(**picks)` -> (config, its name); `picks` are the
-    arguments that choose it, read from argv by hand (None where argv has none valid: then tyro
-    refuses or prints --help on its own), read again from tyro's parse where it differs (a value
-    such as `--out demos` taken for the ablation). The retired --set is refused, naming the flags
-    to write instead."""
-    refusal = overrides.set_refusal(argv)
-    if refusal:
-        raise ValueError(refusal)
-    if picks is None:
-        return parse_args(command, cls, argv)
-    for _ in range(2):
-        base, where = base_of(**picks)
-        a = overrides.parse_config_args(command, cls, argv, cls(**picks, config=base), where)
-        read = {k: getattr(a, k) for k in picks}
-        if read == picks:
-            break
-        picks = read
-    return a
-
-
 def ablation_base(name: str, scale: str) -> tuple[RunConfig, str]:
     from eval.ablate import base_config, resolve_scale
     return base_config(name, resolve_scale(scale)), f"ablation {name}'s base at scale {scale}"
@@ -537,7 +515,8 @@ def parse_ablate(argv: list[str]) -> AblateArgs:
     name = next((arg for arg in argv if arg in ABLATION_NAMES), None)
     scale = overrides.flag_value(argv, "--scale", "auto")
     valid = name is not None and scale in ("auto", *SCALE_NAMES)
-    return parse_cells("ablate", AblateArgs, argv, {"name": name, "scale": scale} if valid else None, ablation_base)
+    return overrides.parse_cells("ablate", AblateArgs, argv, {"name": name, "scale": scale} if valid else None,
+                                 ablation_base)
 
 
 def baseline_base(method: str, scale: str) -> tuple[RunConfig, str]:
@@ -547,10 +526,11 @@ def baseline_base(method: str, scale: str) -> tuple[RunConfig, str]:
 
 def parse_baseline(argv: list[str]) -> BaselineArgs:
     from eval.baselines import METHODS
-    method = next((arg for arg in argv if arg == "all" or (not arg.startswith("-") and arg.split(",")[0] in METHODS)), None)
+    method = next((arg for arg in argv
+                   if arg == "all" or (not arg.startswith("-") and arg.split(",")[0] in METHODS)), None)
     scale = overrides.flag_value(argv, "--scale", "full")
     valid = method is not None and scale in ("tiny", "full")
-    return parse_cells("baseline", BaselineArgs, argv, {"method": method, "scale": scale} if valid else None,
+    return overrides.parse_cells("baseline", BaselineArgs, argv, {"method": method, "scale": scale} if valid else None,
                        baseline_base)
 
 
@@ -646,7 +626,8 @@ def table_report(a: Report, name: str, summary: dict, out: str) -> None:
         runs = summary.get("unfinished", [])
         saved = [r for r in runs if os.path.isdir(os.path.join(r, "checkpoints"))]
         fail(name, f"stopped by {signal.Signals(sig).name}: {len(runs)} cell(s) unfinished; checkpoint saved in "
-                   f"{', '.join(saved) or 'none yet'}; run the same command to resume", code=commandline.signal_exit_code(sig))
+                   f"{', '.join(saved) or 'none yet'}; run the same command to resume",
+             code=commandline.signal_exit_code(sig))
 
 
 def baseline(a: BaselineArgs) -> None:
