@@ -90,8 +90,8 @@ def method_config(method: str, scale: str, seed: int, run_dir: str, trajectories
     run-configuration flags, ablate.cell_overrides), before the method's own fields."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {METHODS}")
+    base = ablate.replace_fields(ablate.cell_base(goalseye_base(scale), seed, run_dir, trajectories), changed or {})
     try:
-        base = ablate.replace_fields(ablate.cell_base(goalseye_base(scale), seed, run_dir, trajectories), changed or {})
         if method in RL:
             run = agents.run_config(method, base)
             settings = {**(tiny_rl() if scale == "tiny" else {"num_evals": 8}), **(rl or {})}
