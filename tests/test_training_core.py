@@ -434,3 +434,27 @@ def test_small_policy_learns_a_synthetic_goal_conditioned_task(kind):
     assert losses.shape == (400, 2)
     assert (before > 0.7).all(), before
     assert (after < 0.1).all(), (before, after)
+
+
+def test_a_checkpoint_keeps_the_pools_filled_rows_and_restores_the_whole_pool(tmp_path):
+    """The pool's empty rows are not written (a block past its filled ones is); the restored
+    pool is the saved one, bit for bit, at its full capacity."""
+    import dataclasses
+    from training import runconfig
+    cfg = runconfig.tiny()
+    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, capacity=3 * checkpoint.CACHE_ROW_BLOCK))
+    ck = jax.eval_shape(lambda: checkpoint.template(cfg))
+    ck = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), ck)
+    rng = np.random.default_rng(0)
+    n = checkpoint.CACHE_ROW_BLOCK + 5                      # two blocks kept, the third not
+    obs = np.zeros(ck.cache.obs.shape, np.float32)
+    obs[:n] = rng.normal(size=(n,) + obs.shape[1:])
+    cache = ck.cache._replace(obs=jnp.asarray(obs), demo=ck.cache.demo.at[:n].set(True),
+                              size=jnp.int32(n), count=jnp.int32(n))
+    ck = ck._replace(cache=cache)
+    d = str(tmp_path / "checkpoints")
+    checkpoint.save(d, 3, ck, runconfig.to_json(cfg))
+    assert checkpoint.restore_config(d)["cache_rows"] == 2 * checkpoint.CACHE_ROW_BLOCK
+    back = checkpoint.load_checkpoint(d).ck
+    for a, b in zip(jax.tree.leaves(back), jax.tree.leaves(ck)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

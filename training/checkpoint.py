@@ -78,6 +78,31 @@ def zero_counters(trajectories: int = 0) -> Counters:
     return Counters(jnp.int32(0), jnp.int32(trajectories), jnp.int32(0))
 
 
+# A checkpoint keeps the pool's filled rows only (rounded up to a block, so that a run's saves
+# take few shapes): early in a run the pool is mostly empty, and writing its empty rows was most
+# of a save (a paper-sim pool is 2 GiB; 15 lanes' saves took ~40 s on an H200 host).
+CACHE_ROW_BLOCK = 4096
+ROW_FIELDS = ("obs", "ball_vel", "actions", "valid", "hit_step", "goal", "demo")
+
+
+def saved_rows(cache: Cache) -> int:
+    """Rows of `cache` a checkpoint keeps: its filled rows rounded up to CACHE_ROW_BLOCK."""
+    return min(cache.capacity, -(-max(int(cache.size), 1) // CACHE_ROW_BLOCK) * CACHE_ROW_BLOCK)
+
+
+def first_rows(cache: Cache, rows: int) -> Cache:
+    """The cache's first `rows` rows (works on ShapeDtypeStructs too)."""
+    cut = lambda x: jax.ShapeDtypeStruct((rows,) + x.shape[1:], x.dtype) if isinstance(x, jax.ShapeDtypeStruct) \
+        else x[:rows]  # noqa: E731
+    return cache._replace(**{f: cut(getattr(cache, f)) for f in ROW_FIELDS})
+
+
+def padded_rows(cache: Cache, capacity: int) -> Cache:
+    """A cache cut to its first rows, back to `capacity` rows (the rest empty, as never written)."""
+    pad = lambda x: jnp.concatenate([x, jnp.zeros((capacity - x.shape[0],) + x.shape[1:], x.dtype)])  # noqa: E731
+    return cache._replace(**{f: pad(getattr(cache, f)) for f in ROW_FIELDS})
+
+
 def template(cfg: RunConfig) -> Checkpointed:
     """Shapes and dtypes of a checkpoint of `cfg` (values unused)."""
     norm = identity_normalizer(cfg.policy.obs_size)
@@ -109,6 +134,9 @@ def save(directory: str, step: int, tree, config: dict, keep: int = 3) -> None:
     files; delete all but the newest `keep`. An existing step is an error."""
     if keep < 1:
         raise ValueError(f"checkpoint.save: keep={keep}, expected >= 1")
+    if isinstance(tree, Checkpointed) and saved_rows(tree.cache) < tree.cache.capacity:
+        rows = saved_rows(tree.cache)
+        tree, config = tree._replace(cache=first_rows(tree.cache, rows)), {**config, "cache_rows": rows}
     with _disk_errors(directory, int(step)):
         with _manager(directory, keep) as mngr:
             mngr.save(int(step), args=ocp.args.Composite(state=ocp.args.StandardSave(_savable(tree)),
@@ -256,7 +284,11 @@ def restore(directory: str, like, step: int | None = None):
     dtypes (its values are unused; jax.eval_shape's ShapeDtypeStructs will do, for trees without
     typed keys); leaves come back as jax arrays, typed keys as typed keys."""
     step = _existing_step(directory, step)
-    abstract = jax.tree.map(lambda x: x if isinstance(x, jax.ShapeDtypeStruct) else ocp.utils.to_shape_dtype_struct(x),
+    # A structure without placement restores onto this process's first device (not the devices
+    # that saved it, which another process may not have).
+    here = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+    abstract = jax.tree.map(lambda x: (x if x.sharding is not None else jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=here))
+                            if isinstance(x, jax.ShapeDtypeStruct) else ocp.utils.to_shape_dtype_struct(x),
                             _savable(like))
     with _manager(directory, read_only=True) as mngr:
         out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
@@ -341,8 +373,12 @@ def _load_step(ckpt: str, step: int) -> Loaded:
         cfg = from_json(saved)
     except (TypeError, ValueError, KeyError) as e:
         raise ValueError(f"{where}: the saved configuration is not a RunConfig this version reads ({e})") from e
+    rows = saved.get("cache_rows")   # absent: the whole pool was saved
     try:
-        ck, _ = restore(ckpt, template(cfg), step)
+        like = jax.eval_shape(lambda: template(cfg))   # shapes only: no pool or weights allocated
+        ck, _ = restore(ckpt, like if rows is None else like._replace(cache=first_rows(like.cache, rows)), step)
+        if rows is not None:
+            ck = ck._replace(cache=padded_rows(ck.cache, cfg.train.capacity))
     except Exception as e:
         raise ValueError(f"{where}: cannot restore the arrays for the saved configuration "
                          f"({type(e).__name__}: {e})") from e

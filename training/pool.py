@@ -40,10 +40,11 @@ def needs_collecting(cfg: RunConfig) -> bool:
             and not checkpoint_steps(os.path.join(cfg.run_dir, "checkpoints")))
 
 
-def collect_for_lanes(cfgs: list[RunConfig], progress: bool) -> None:
+def collect_for_lanes(cfgs: list[RunConfig], progress: bool, place=None, devices: int = 1) -> None:
     """Collect the demonstrations of every run in `cfgs` that starts by collecting, the runs of a
-    source and count together (demos.collect_lanes: one rollout per chunk for all their seeds),
-    into the memo `load_demos` reads: so a table's setup plays its lanes' demonstrations at once."""
+    source and count together (demos.collect_lanes: one rollout per chunk for all their seeds,
+    split over `devices` by `place` on MJX), into the memo `load_demos` reads: so a table's setup
+    plays its lanes' demonstrations at once."""
     want = {_collect_key(c): c for c in cfgs if needs_collecting(c)}
     kept = {k: v for k, v in _COLLECTED.items() if k in want}
     groups: dict = {}
@@ -51,7 +52,8 @@ def collect_for_lanes(cfgs: list[RunConfig], progress: bool) -> None:
         if k not in kept:
             groups.setdefault((c.world, c.demo_source, c.demos, k[-1]), []).append(k)
     for (world, source, n, backend), keys in groups.items():
-        trajs = demos.collect_lanes(world, source, n, [k[3] for k in keys], backend, progress=progress)
+        trajs = demos.collect_lanes(world, source, n, [k[3] for k in keys], backend, progress=progress,
+                                    place=place, devices=devices)
         kept.update(zip(keys, trajs))
     if want:
         _COLLECTED.clear()

@@ -213,7 +213,7 @@ PRESET_NAMES = ("default", "lfp", "gcsl", *PRESETS)
 
 
 # Keys saved beside the configuration in checkpoints that are run bookkeeping, not config.
-BOOKKEEPING = ("absorbed_data", "checkpoint_format")
+BOOKKEEPING = ("absorbed_data", "checkpoint_format", "cache_rows")
 
 
 def from_json(d: dict) -> RunConfig:

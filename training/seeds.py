@@ -180,7 +180,7 @@ class SeedRuns:
                              {"seeds": [r.cfg.seed for r in self.runs],
                               "run_dirs": [os.path.relpath(r.cfg.run_dir, self.parent) for r in self.runs]})
         # the lanes that start afresh collect their demonstrations together, one rollout per chunk
-        pool.collect_for_lanes([r.cfg for r in self.runs], self.progress)
+        pool.collect_for_lanes([r.cfg for r in self.runs], self.progress, self.place, self.devices)
         cks = [r.start() for r in self.runs]
         its = [int(c.counters.iteration) for c in cks]
         low = min(its)

@@ -38,7 +38,7 @@ Evaluate = Callable[..., dict]
 
 # Fields that may differ when resuming (they do not change the computation).
 RESUME_MAY_CHANGE = {"run_dir", "data", "keep_checkpoints", "total_trajectories", "checkpoint_every",
-                     "absorbed_data", "checkpoint_format", "devices"}
+                     "absorbed_data", "checkpoint_format", "cache_rows", "devices"}
 
 
 # -- schedule -------------------------------------------------------------------------------

@@ -256,29 +256,38 @@ def collect(cfg: World, source: str, n: int, seed: int, backend: str = "c", chun
 
 
 def collect_lanes(cfg: World, source: str, n: int, seeds: list[int], backend: str = "c",
-                  progress: bool = False) -> list:
+                  progress: bool = False, place=None, devices: int = 1) -> list:
     """`collect(cfg, source, n, seed, backend)` for several seeds at once -> [S] records, record
-    s with the draws of `collect(..., seeds[s])` (the same chunks, keys and throws), played
-    together by `Backend.rollout_seeds`: the setup of a table's lanes is then one rollout per
-    chunk, not one per lane. As many seeds share a call as fit the backend's demonstration chunk."""
+    s with the draws of `collect(..., seeds[s])` (the same chunks, keys and throws; on MuJoCo C
+    the same records, on MJX the same up to the vmapped float32 arithmetic, which the contact can
+    carry to a few cm of landing), played together by `Backend.rollout_seeds`: the setup of a table's lanes is then one rollout per
+    chunk, not one per lane. As many seeds share a call as fit the backend's demonstration chunk
+    on each of `devices` devices; on MJX `place` (a tree [S, ...] -> the same laid over the
+    devices, training.seeds) splits a call's seeds over them, a group padded to the devices with
+    copies of its last seed (computed, dropped)."""
     if n < 1 or not seeds:
         raise ValueError(f"collect_lanes: n={n} and {len(seeds)} seeds, expected n >= 1 and at least one seed")
     policy, params = source_policy(cfg, source)
     be = backends.Backend(cfg, backend)
+    split = place is not None and be.kind.traceable
+    devices = devices if split else 1
     chunk = be.kind.demo_chunk
-    per_call = max(1, chunk // min(chunk, n))   # seeds whose chunk of throws fit one call
+    per_call = max(1, chunk // min(chunk, n)) * devices   # seeds whose chunks of throws fit one call
     out = []
     bar = _bar(n * len(seeds), progress)
     for g in range(0, len(seeds), per_call):
         group = seeds[g:g + per_call]
-        lanes = jax.tree.map(lambda x: jnp.broadcast_to(x, (len(group),) + jnp.shape(x)), params)
+        width = -(-len(group) // devices) * devices
+        played = group + [group[-1]] * (width - len(group))
+        lay = place if split else (lambda tree: tree)
+        lanes = lay(jax.tree.map(lambda x: jnp.broadcast_to(x, (width,) + jnp.shape(x)), params))
         parts = []
         for start in range(0, n, chunk):
             m = min(chunk, n - start)
-            keys = [jax.random.split(jax.random.fold_in(jax.random.PRNGKey(s), start)) for s in group]
+            keys = [jax.random.split(jax.random.fold_in(jax.random.PRNGKey(s), start)) for s in played]
             th = jax.tree.map(lambda *xs: jnp.stack(xs), *[thrower.sample_throws(k[0], cfg, m) for k in keys])
-            rec = be.rollout_seeds(policy, lanes, jnp.stack([k[1] for k in keys]), th,
-                                   np.zeros((len(group), m, 2), np.float32))
+            rec = be.rollout_seeds(policy, lanes, lay(jnp.stack([k[1] for k in keys])), lay(th),
+                                   lay(jnp.zeros((width, m, 2), jnp.float32)))
             parts.append(jax.tree.map(np.asarray, rec))
             bar.update(m * len(group))
         out += [record.concat([jax.tree.map(lambda x: x[i], p) for p in parts]) for i in range(len(group))]
