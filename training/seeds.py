@@ -43,10 +43,10 @@ from training import budget, mesh, pool, runlog
 from training.checkpoint import Checkpointed, Counters
 from training.practice import Practice, stats_row
 from training.runconfig import RunConfig, to_json
-from training.trainer import (SEEDS_FILE, NonFiniteError, Run, finite_flags, install_stop_signals, is_eval_iteration,
-                              phase, practice_iterations, pretrain_iterations, restore_signals, round_episodes,
-                              total_iterations, _now)
+from training.trainer import (SEEDS_FILE, NonFiniteError, Run, finite_flags, is_eval_iteration, phase,
+                              practice_iterations, pretrain_iterations, round_episodes, total_iterations, _now)
 from training.update import acting_params, lane_knobs
+from ttmjx.commandline import install_stop_signals, restore_signals
 from ttmjx.world import files
 from ttmjx.world.backends import Backend, resolve_backend
 

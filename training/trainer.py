@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import signal
 import sys
 from typing import Callable
 
@@ -29,6 +28,7 @@ from training.checkpoint import Checkpointed, Counters
 from training.practice import Practice, stats_row
 from training.runconfig import BOOKKEEPING, RunConfig, from_json, to_json
 from training.update import acting_params, init_train_state
+from ttmjx.commandline import install_stop_signals, restore_signals
 from ttmjx.tools.demos import renamed
 from ttmjx.world import files
 from ttmjx.world.backends import Backend, resolve_backend
@@ -373,7 +373,7 @@ class Run:
         total = cfg.total_trajectories if cfg.practice else max(cfg.demos, 1)
         bar = runlog.progress_bar(total, int(ck.counters.trajectories), self.progress)
         last = {}
-        self._install_signals()
+        install_stop_signals(self)     # SIGINT/SIGTERM: this iteration finishes, saves, returns
         try:
             for it in range(start, stop_at):
                 before = int(ck.counters.trajectories)
@@ -389,37 +389,13 @@ class Run:
                     break
         finally:
             bar.close()
-            self._restore_signals()
+            restore_signals(self)
             self.metrics.close()
         runlog.plot_curves(self.metrics.path, os.path.join(self.log_dir, "learning_curve.png"))
         return {"run_dir": cfg.run_dir, "iteration": int(ck.counters.iteration),
                 "trajectories": int(ck.counters.trajectories), "finished": int(ck.counters.iteration) >= n_tot,
                 "stopped_by_signal": self._stop,
                 **{k: v for k, v in last.items() if k.startswith("eval_")}}
-
-    # -- signals -----------------------------------------------------------------------------
-    def _install_signals(self):
-        install_stop_signals(self)
-
-    def _restore_signals(self):
-        restore_signals(self)
-
-
-def install_stop_signals(owner):
-    """SIGINT/SIGTERM set owner._stop (the loop saves and exits after the iteration); a second
-    one exits at once (the last checkpoint stays)."""
-    def handler(signum, frame):
-        if owner._stop:
-            os._exit(128 + signum)
-        owner._stop = signum
-        owner.log(f"\n[ttmjx] {signal.Signals(signum).name}: finishing this iteration, saving a checkpoint, "
-                  f"then exiting (resume with the same command)")
-    owner._old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
-
-
-def restore_signals(owner):
-    for s, h in getattr(owner, "_old", {}).items():
-        signal.signal(s, h)
 
 
 def _now() -> float:
