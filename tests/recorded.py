@@ -45,10 +45,12 @@ CROSS_CPU_LOSS_REL = 1e-3
 # Fields the runs write that the recordings predate (the paper's distance to goal over every
 # landing, ttmjx.world.goals.landed_mean_distance): a run's rows are compared on the others.
 # Since then too: success by goal region and by ensemble member (the diagnostics of `ttmjx
-# report`), summaries of the same episodes that change no other number.
+# report`), summaries of the same episodes that change no other number; and the loss on
+# held-out demonstrations (eval.heldout), a diagnostic that changes no other number either.
 ADDED_SINCE_THE_RECORDINGS = ("eval_mean_dist_landed",
                               *(f"{phase}_{part}_30cm" for phase in ("eval", "practice")
-                                for part in ("near", "middle", "far", "edges", "member0", "member1")))
+                                for part in ("near", "middle", "far", "edges", "member0", "member1")),
+                              "eval_heldout_loss", "eval_member0_heldout_loss", "eval_member1_heldout_loss")
 ACROSS_CPUS = ("iteration", "phase", "trajectories", "updates", "eval_goals")
 VECTOR_FLAGS = ("sse4_1", "sse4_2", "avx", "avx2", "fma", "avx512f", "avx512dq", "avx512bw", "avx512vl",
                 "avx512_bf16", "avx512_fp16", "avx_vnni", "amx_bf16", "amx_tile", "asimd", "sve")

@@ -543,13 +543,14 @@ def train(a: TrainArgs) -> None:
     if a.seeds > 1:
         from eval.evaluate import training_evaluation_seeds
         from training.seeds import SeedRuns, seed_configs
-        out = SeedRuns(seed_configs(cfg, a.seeds), training_evaluation_seeds(cfg), progress=not a.json,
+        cfgs = seed_configs(cfg, a.seeds)
+        out = SeedRuns(cfgs, training_evaluation_seeds(cfg, heldout=cfgs), progress=not a.json,
                        parent=cfg.run_dir).run(max_iterations=a.max_iterations)
         lines = [f"seed {r['seed']}: " + table({k: v for k, v in r.items() if k.startswith("eval_")})
                  .replace("\n", ", ") for r in out["runs"]]
         report(a, out, table({k: v for k, v in out.items() if k != "runs"}) + "\n" + "\n".join(lines))
     else:
-        out = Run(cfg, evaluate=training_evaluation(cfg), progress=not a.json).run(max_iterations=a.max_iterations)
+        out = Run(cfg, evaluate=training_evaluation(cfg, heldout=True), progress=not a.json).run(max_iterations=a.max_iterations)
         report(a, out, table(out))
     if out["stopped_by_signal"]:
         sys.exit(commandline.signal_exit_code(out["stopped_by_signal"]))
