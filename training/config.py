@@ -37,7 +37,7 @@ class TrainConfig:
     # paper); "frontier", a share frontier_fraction of each round's goals moved to the least dense
     # of the pool's achieved landings, jittered, within the same region (MEGA, arXiv 2007.02832;
     # training.frontier): goals just beyond what the policy reaches, where a uniform draw rarely
-    # aims (issue #44).
+    # aims.
     practice_goals: Literal[PRACTICE_GOALS] = "uniform"
     # Share of each round's practice goals drawn from the frontier with practice_goals="frontier"
     # (the rest stay uniform, so that every region keeps being practised).

@@ -232,8 +232,10 @@ class EvalArgs(Report):
     distribution: Literal[THROW_DISTRIBUTIONS] | None = None
     """Throws; None: the run's."""
     goals: str = "200"
-    """Number of uniform goals over the opponent's half, 'five' for goals A-E, or a goal file (.csv
-    with a header row x,y, or .npy [N, 2]; goals on the opponent's half; one attempt each)."""
+    """A --goals value (ttmjx.world.goalspec, the grammar robot run reads too): N uniform goals,
+    'uniform' (200 of them), 'five' (goals A-E, --per-goal attempts each), 'x,y;x,y' goals in
+    metres, or a goal file (.csv with a header row x,y, or .npy [N, 2]); goals on the opponent's
+    half, one attempt each."""
     out: str | None = None
     """New or empty directory for summary.json, episodes.csv and tracks.npz (docs/DATA.md)."""
     per_goal: int = 40

@@ -53,7 +53,9 @@ class RobotRunArgs(Report):
     station: Literal[STATIONS]
     """sim: MuJoCo C physics and the thrower; fake: simple kinematics; cell: the drivers (--config)."""
     goals: str
-    """'x,y;x,y', a goal file (.json/.npy/.csv/.txt), 'five' (goals A-E) or 'uniform'."""
+    """A --goals value (ttmjx.world.goalspec, the grammar eval reads too): N uniform goals, 'uniform'
+    (--n of them), 'five' (goals A-E), 'x,y;x,y' goals in metres, or a goal file (.csv header x,y,
+    or .npy [N, 2]); goals on the opponent's half, each --n times in a row ('uniform': once)."""
     n: int = 1
     """Attempts per goal ('uniform': the number of goals)."""
     out: str | None = None

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# On the lent GPU machine (device tool), from the repository root: issue #25's baseline cells.
+# On the lent GPU machine (device tool), from the repository root: Table I's baseline cells.
 #   bash scripts/dev/gpu_baselines.sh PROFILE_S "METHOD:SEEDS:LIMIT_S" ...
 # e.g. bash scripts/dev/gpu_baselines.sh 90 ppo:5:300 es:1:140
 # Profiles the environment pieces (scripts/dev/baseline_profile.py, at most PROFILE_S seconds; 0

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # One call on four H200s (nvidia-h200-x4): the same 8 lanes of paper-sim-new (seeds 0-7) as one
 # program laid over 4 GPUs (2 lanes each), then over 1 GPU (8 lanes), each for 2 pretraining
-# chunks and 3 practice rounds (400 demonstrations each, to keep the setup short); then the same preset as 1 lane alone on 1 GPU (issue #45: lanes
-# over every device). Per-iteration seconds are in each lane's metrics.jsonl ("seconds").
+# chunks and 3 practice rounds (400 demonstrations each, to keep the setup short); then the same preset as 1 lane alone on 1 GPU: what laying
+# lanes over every device gains. Per-iteration seconds are in each lane's metrics.jsonl ("seconds").
 #   bash scripts/dev/gpu_lanes_scaling.sh      (carry .wheels)
 # Writes $OUT/lanes.tgz (every lane's metrics.jsonl and config.json) and $OUT/log.txt.
 source scripts/dev/device_setup.sh

@@ -3,7 +3,7 @@
 # fault in the first practice round of 8 paper-sim-new lanes over 4 GPUs): 4 lanes (seeds 0-3)
 # over 4 GPUs with the lanes split by shard_map, then by jit's partitioner
 # (TTMJX_LANE_SPLIT=jit), then the 4 lanes on 1 GPU; each 1 pretraining chunk and 3 practice
-# rounds, Python's fault handler on (issue #45).
+# rounds, Python's fault handler on.
 #   bash scripts/dev/gpu_lanes_split.sh      (carry .wheels)
 # TTMJX_LANE_SPLIT chose the split when this ran (8f2a45f's parent); the code now always uses
 # jit's partitioner (training.practice.over_lanes), so both 4-GPU jobs run it today.

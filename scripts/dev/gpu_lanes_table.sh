@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# One call on four H200s (nvidia-h200-x4), lanes split by jit's partitioner (issue #45):
+# One call on four H200s (nvidia-h200-x4), lanes split by jit's partitioner:
 #  1. 16 lanes of paper-sim-new (seeds 0-15) over 4 GPUs, 4 lanes a GPU, 1 pretraining chunk and
 #     3 practice rounds: against the 4 lanes on 1 GPU of scripts/dev/gpu_lanes_split.sh (the same
 #     load per GPU), the 4-GPU speed-up of a table;

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue #49 on one GPU: the README main job (the default preset on a GPU) trained on MJX,
+# The world against the runner on one GPU: the README main job (the default preset on a GPU) trained on MJX,
 # exported (all members, actions averaged), then on the same 400 goals and throws (seed 2026)
 # evaluated by MJX at JAX's default matmul precision, by MJX at "highest" and by MuJoCo C, and
 # played by the parity harness (world on MJX against the runner on the MuJoCo C station).

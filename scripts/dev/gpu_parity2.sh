@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue #49 on one GPU, second call: the README main job (the GPU default preset) trained on MJX
+# The world against the runner on one GPU, second call: the README main job (the GPU default preset) trained on MJX
 # again, then on the same 400 goals and throws (seed 2026): the ensemble as the runner plays it
 # (actions averaged) in the MJX world; `ttmjx eval` of member 0 alone on MJX and on MuJoCo C; the
 # parity harness on the averaged ensemble (MJX world against the runner); member 0's export

@@ -6,6 +6,8 @@
 # keep watching it (a GoalsEye arm at 120k takes longer than one call).
 #   bash scripts/dev/gpu_table1_x4.sh start WAIT_S    # first call: install, launch, then watch
 #   bash scripts/dev/gpu_table1_x4.sh wait WAIT_S     # later calls: keep watching
+# Environment: TRAJ, SEEDS, SCALE, BOOT (1: build the bootstrap), TESTS (1: the tests on the CPU), JOBS and FLAGS, the run
+# configuration's flags as `ttmjx train` takes them for every job (e.g. FLAGS="--demo-source paper").
 # Each call leaves in $OUT: log.txt and table1.tgz (every file under 2 MB but checkpoints: the
 # ablations' results/, each run's metrics.jsonl and config.json, the reports, the bootstrap
 # build's record, ES weights, policy and maps; each job's log tail as *.log.tail), refreshed
@@ -16,7 +18,7 @@ set -uo pipefail
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false TTMJX_JAX_CACHE=/tmp/jaxcache
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"; T=${T1_DIR:-/tmp/t1x4}; mkdir -p "$T/edges"
 TRAJ=${TRAJ:-120000}; SEEDS=${SEEDS:-5}; SCALE=${SCALE:-full}; BOOT=${BOOT:-1}; TESTS=${TESTS:-0}
-SET=${SET:-}   # e.g. SET=demo_source=paper: `ttmjx ablate --set` for every job
+FLAGS=${FLAGS:-}   # e.g. FLAGS="--demo-source paper": train's flags, which `ttmjx ablate` passes to every job's cells
 # GPU:job:ablation:cells
 JOBS=${JOBS:-"0:goalseye:practice:goalseye 1:lfp:practice:lfp-equal-updates,lfp-equal-data 2:gcsl:demos:d0 3:d100:demos:d100"}
 pack() {   # $OUT gets two files (a call returns at most 8): table1.tgz and log.txt
@@ -48,7 +50,7 @@ if [[ $mode == start ]]; then
     IFS=: read -r gpu job abl cells <<< "$spec"
     setsid bash -c "cd $PWD; source scripts/dev/gpu_table1_x4.sh lib; export CUDA_VISIBLE_DEVICES=$gpu
       /usr/bin/time -f 'wall %e s, peak rss %M kB' $(cores $((gpu * 4)) $((gpu * 4 + 3))) python3 -m ttmjx ablate $abl \
-        --scale $SCALE --seeds $SEEDS --cells $cells --trajectories $TRAJ ${SET:+--set $SET} --out $T/$abl 2>&1 | stdbuf -oL tr '\r' '\n' \
+        --scale $SCALE --seeds $SEEDS --cells $cells --trajectories $TRAJ $FLAGS --out $T/$abl 2>&1 | stdbuf -oL tr '\r' '\n' \
         | grep --line-buffered -v 'traj/s\|throw/s\|absl\|^\s*$' > $T/$job.log
       touch $T/$job.done; edges $gpu $job $abl $cells; touch $T/$job.edges" </dev/null >/dev/null 2>&1 &
     echo "started $job on GPU $gpu $(date +%T)" | tee -a "$T/log.txt"

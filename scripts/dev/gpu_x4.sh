@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # One call on four H200s (nvidia-h200-x4), each GPU its own process:
-#   GPUs 0-2: Table I's QT-Opt row, 120,000 trajectories, seeds 0-1, 2-3 and 4 (issue #46);
+#   GPUs 0-2: Table I's QT-Opt row, 120,000 trajectories, seeds 0-1, 2-3 and 4;
 #   GPU 3:    the README main job retrained after the tick-0 velocity fix, and its export played
-#             by the world and the runner (scripts/dev/gpu_parity2.sh; issue #49).
+#             by the world and the runner (scripts/dev/gpu_parity2.sh).
 #   bash scripts/dev/gpu_x4.sh      (carry .wheels)
 # Writes $OUT/qtopt.tgz (each seed's results and timing), $OUT/results.tgz and $OUT/member0.tgz
 # (the main job's figures and member 0's export) and $OUT/log.txt.

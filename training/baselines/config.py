@@ -125,7 +125,7 @@ class ESConfig:
 @dataclasses.dataclass(frozen=True)
 class QTOptConfig:
     """QT-Opt's settings (training/baselines/qtopt.py), each with its source. "QT-Opt" is
-    Kalashnikov et al. 2018 (arXiv 1806.10293) as read for issue #46 (the paper is not in this
+    Kalashnikov et al. 2018 (arXiv 1806.10293) as read when this baseline was written (the paper is not in this
     repository; its values below were not re-checked against its text in the session that wrote
     them); "TF-Agents" is tf_agents/agents/qtopt/qtopt_agent.py, the maintained implementation.
     None was tuned against the result.
