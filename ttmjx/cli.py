@@ -552,7 +552,8 @@ def train(a: TrainArgs) -> None:
                  .replace("\n", ", ") for r in out["runs"]]
         report(a, out, table({k: v for k, v in out.items() if k != "runs"}) + "\n" + "\n".join(lines))
     else:
-        out = Run(cfg, evaluate=training_evaluation(cfg, heldout=True), progress=not a.json).run(max_iterations=a.max_iterations)
+        out = Run(cfg, evaluate=training_evaluation(cfg, heldout=True),
+                  progress=not a.json).run(max_iterations=a.max_iterations)
         report(a, out, table(out))
     if out["stopped_by_signal"]:
         sys.exit(commandline.signal_exit_code(out["stopped_by_signal"]))
