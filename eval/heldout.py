@@ -49,16 +49,25 @@ def heldout_meta(cfg: RunConfig) -> dict:
             "horizon": cfg.world.horizon}
 
 
-def heldout_demos(cfg: RunConfig) -> record.Trajectories:
-    """[HELDOUT_DEMOS, T, ...] demonstrations of cfg.demo_source at heldout_seed(cfg): read from
-    RUN/heldout_demos, or collected now and written there (by the primary process)."""
-    path = os.path.join(cfg.run_dir, HELDOUT_DIR)
-    traj = cached_demos(path, heldout_meta(cfg))
-    if traj is None:
-        traj = demos.collect(cfg.world, cfg.demo_source, HELDOUT_DEMOS, heldout_seed(cfg), resolve_backend(cfg.backend))
-        if is_primary():
-            write_demos(path, traj, cfg)
-    return traj
+def heldout_sets(cfgs: list[RunConfig]) -> list:
+    """Each run's held-out demonstrations ([HELDOUT_DEMOS, T, ...] of cfg.demo_source at
+    heldout_seed(cfg); None without demonstrations): read from RUN/heldout_demos, or collected and
+    written there (by the primary process), the sets not on disk collected together, a source at a time (demos.collect_lanes: the records of each
+    seed's own collection), so a batch of lanes does not collect its sets one after another."""
+    out = [cached_demos(os.path.join(c.run_dir, HELDOUT_DIR), heldout_meta(c)) if c.demos else None for c in cfgs]
+    todo: dict = {}
+    for i, c in enumerate(cfgs):
+        if c.demos and out[i] is None:
+            todo.setdefault((c.world, c.demo_source, resolve_backend(c.backend)), {}).setdefault(c.run_dir, []).append(i)
+    for (world, source, backend), runs in todo.items():
+        firsts = [idx[0] for idx in runs.values()]   # padded lanes repeat a run: collected once
+        trajs = demos.collect_lanes(world, source, HELDOUT_DEMOS, [heldout_seed(cfgs[i]) for i in firsts], backend)
+        for idx, traj in zip(runs.values(), trajs):
+            if is_primary():
+                write_demos(os.path.join(cfgs[idx[0]].run_dir, HELDOUT_DIR), traj, cfgs[idx[0]])
+            for i in idx:
+                out[i] = traj
+    return out
 
 
 def cached_demos(path: str, meta: dict) -> record.Trajectories | None:
@@ -135,7 +144,8 @@ class HeldOut:
 
     def metrics(self, params) -> list[dict]:
         if self.batches is None:
-            self.batches = [heldout_batch(c, heldout_demos(c)) if c.demos else None for c in self.cfgs]
+            self.batches = [heldout_batch(c, t) if t is not None else None
+                            for c, t in zip(self.cfgs, heldout_sets(self.cfgs))]
         losses = lane_losses(self.cfgs[0].policy, params, self.batches)
         return [loss_metrics(loss) if c.demos else {} for c, loss in zip(self.cfgs, losses)]
 
