@@ -156,7 +156,7 @@ def evaluate_checkpoint(path: str, goals: str = "200", per_goal: int = 40, distr
                         backend: str | None = None, seed: int = 1234, member_index: int | None = None,
                         step: int | None = None, out: str | None = None) -> dict:
     """`ttmjx eval`: metrics of a run's checkpoint (its moving-average policy) on `goals`, a
-    --goals value (deploy.robot.goals, the one grammar `ttmjx robot run` reads too): N uniform
+    --goals value (ttmjx.world.goalspec, the one grammar `ttmjx robot run` reads too): N uniform
     goals ('uniform': EVAL_UNIFORM_GOALS), 'five' (per_goal attempts at each of A-E), or goals
     inline or in a goal file (one attempt each); throws of the run's distribution or
     `distribution`; one member alone with member_index. With `out`, the metrics, one row per

@@ -56,11 +56,17 @@ def check_metrics_rows(rows: list[dict], cfg) -> None:
     practice = {f"practice_{k}" for k in {"hit_rate", "on_table_rate", "within_30cm", "within_20cm", "kept"}
                 | regions | members}
     evaluation = {f"eval_{k}" for k in GOAL_METRICS | regions | members}
+    # the loss on held-out demonstrations (ttmjx train logs it; a run with demonstrations only)
+    heldout = {"eval_heldout_loss"} | ({f"eval_member{i}_heldout_loss" for i in range(cfg.train.members)}
+                                       if cfg.train.members > 1 else set())
     assert [r["iteration"] for r in rows] == list(range(len(rows)))
     seen = 0
     for r in rows:
         keys = set(r)
-        assert base <= keys and keys <= base | practice | evaluation, keys - base - practice - evaluation
+        assert base <= keys and keys <= base | practice | evaluation | heldout, keys - base - practice - evaluation
+        assert keys & heldout in (set(), heldout) and (not keys & heldout or "eval_goals" in keys)
+        for k in keys & heldout:
+            assert np.isfinite(r[k]) and r[k] >= 0, k
         assert r["phase"] in ("pretrain", "practice", "lfp")
         assert (practice <= keys) == (r["phase"] == "practice") and (keys & practice in (set(), practice))
         assert keys & evaluation in (set(), evaluation)
