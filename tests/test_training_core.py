@@ -458,3 +458,24 @@ def test_a_checkpoint_keeps_the_pools_filled_rows_and_restores_the_whole_pool(tm
     back = checkpoint.load_checkpoint(d).ck
     for a, b in zip(jax.tree.leaves(back), jax.tree.leaves(ck)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_overlapping_saves_put_stderr_back_whatever_order_they_end_in(tmp_path):
+    """Lanes save from several threads at once: two saves whose output holds overlap and end in
+    the order they started (not nested) leave sys.stderr as it was, and what they held is shown."""
+    import io
+    import sys
+    before, shown = sys.stderr, io.StringIO()
+    sys.stderr = shown
+    try:
+        a, b = checkpoint._disk_errors(str(tmp_path), 1), checkpoint._disk_errors(str(tmp_path), 2)
+        a.__enter__()
+        print("from the first save", file=sys.stderr)
+        b.__enter__()
+        a.__exit__(None, None, None)
+        assert sys.stderr is not shown          # the second save still holds its output
+        b.__exit__(None, None, None)
+        assert sys.stderr is shown
+    finally:
+        sys.stderr = before
+    assert "from the first save" in shown.getvalue()

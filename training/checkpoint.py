@@ -196,38 +196,62 @@ class MainThreadStderr:
         return getattr(self.stream, name)
 
 
+# Output held while saves run. The lanes of a batch save from several threads at once
+# (training.seeds), so the swap of sys.stderr is shared: the first save in installs it, the last
+# one out restores it (a save that restored it while another still held it would leave stderr
+# pointing at a buffer nobody reads).
+_HOLD_LOCK = threading.Lock()
+_hold: dict = {"depth": 0}
+
+
+@contextlib.contextmanager
+def _held_output():
+    """Orbax's logged records and what its threads print, held until the last overlapping save
+    ends, then shown unless a save failed for want of space (then stderr passes only the main
+    thread's writes: MainThreadStderr). Yields the shared state (set "full" on such a failure)."""
+    logger = logging.getLogger("absl")
+    with _HOLD_LOCK:
+        if _hold["depth"] == 0:
+            _hold.update(real=sys.stderr, err=io.StringIO(), held=_Held(), full=False)
+            logger.addFilter(_hold["held"])
+            sys.stderr = _hold["err"]
+        _hold["depth"] += 1
+    try:
+        yield _hold
+    finally:
+        with _HOLD_LOCK:
+            _hold["depth"] -= 1
+            if _hold["depth"] == 0:
+                real, held = _hold["real"], _hold["held"]
+                logger.removeFilter(held)
+                sys.stderr = MainThreadStderr(real) if _hold["full"] else real
+                if not _hold["full"]:
+                    real.write(_hold["err"].getvalue())
+                    for r in held.records:
+                        logger.handle(r)
+
+
 @contextlib.contextmanager
 def _disk_errors(directory: str, step: int):
     """A full disk (or a file-size limit, a quota) while Orbax saves step `step` becomes one
     OSError naming the file and the checkpoint: its partial step directory is removed, the
-    newest complete checkpoint stays. Orbax's logged tracebacks and what its threads print are
-    held while it saves and shown again unless the save failed for want of space; then stderr
-    passes only the main thread's writes (MainThreadStderr)."""
-    logger, held, err = logging.getLogger("absl"), _Held(), io.StringIO()
-    logger.addFilter(held)
-    real_stderr, sys.stderr = sys.stderr, err
-    full = None
-    try:
-        yield
-    except Exception as e:   # noqa: BLE001 (tensorstore's errors are ValueErrors)
-        full = disk_error(e)
-        if full is None:
-            raise
-        code, path = full
-        tmp = [os.path.join(os.path.abspath(directory), n) for n in os.listdir(directory)
-               if n.startswith(f"{step}.") and n.endswith("-tmp")] if os.path.isdir(directory) else []
-        for t in tmp:
-            shutil.rmtree(t, ignore_errors=True)
-        raise OSError(code, f"{DISK_ERRNOS[code]} while saving checkpoint {step} in {os.path.abspath(directory)} (not "
-                            f"saved; the newest complete checkpoint stays: free space and run the same command)",
-                      path or os.path.abspath(directory)) from None
-    finally:
-        sys.stderr = real_stderr if full is None else MainThreadStderr(real_stderr)
-        logger.removeFilter(held)
-        if full is None:
-            real_stderr.write(err.getvalue())
-            for r in held.records:
-                logger.handle(r)
+    newest complete checkpoint stays. Orbax's output is held while it saves (_held_output)."""
+    with _held_output() as hold:
+        try:
+            yield
+        except Exception as e:   # noqa: BLE001 (tensorstore's errors are ValueErrors)
+            full = disk_error(e)
+            if full is None:
+                raise
+            hold["full"] = True
+            code, path = full
+            tmp = [os.path.join(os.path.abspath(directory), n) for n in os.listdir(directory)
+                   if n.startswith(f"{step}.") and n.endswith("-tmp")] if os.path.isdir(directory) else []
+            for t in tmp:
+                shutil.rmtree(t, ignore_errors=True)
+            raise OSError(code, f"{DISK_ERRNOS[code]} while saving checkpoint {step} in {os.path.abspath(directory)} "
+                                f"(not saved; the newest complete checkpoint stays: free space and run the same "
+                                f"command)", path or os.path.abspath(directory)) from None
 
 
 def discard(directory: str, damaged) -> None:
