@@ -27,7 +27,8 @@ from training.cache import add_episodes
 from training.practice import THROW_BLOCK, practice_policy
 from training.runconfig import preset
 from training.seeds import SeedRuns, seed_configs
-from training.trainer import is_eval_iteration, practice_iterations, pretrain_iterations, total_iterations
+from training.trainer import (is_checkpoint_iteration, is_eval_iteration, practice_iterations, pretrain_iterations,
+                              total_iterations)
 from training.update import acting_params
 from ttmjx.world.env import uniform_goals
 
@@ -108,7 +109,7 @@ def _bench(name: str, seeds: int, reps: int, demos: int | None, backend: str | N
 
     n_pre, n_prac, n_tot = pretrain_iterations(cfg), practice_iterations(cfg), total_iterations(cfg)
     n_eval = sum(is_eval_iteration(cfg, i) for i in range(n_tot))
-    n_save = sum((i + 1) % cfg.checkpoint_every == 0 or i + 1 == n_tot for i in range(n_tot))
+    n_save = sum(is_checkpoint_iteration(cfg, i, n_tot) for i in range(n_tot))
     compile_s = sum(max(out[f"{p}_first_call_s"] - out[f"{p}_s"], 0.0)
                     for p in ("round", "updates", "evaluation") if f"{p}_s" in out)
     per_round = out["round_s"]

@@ -83,8 +83,9 @@ def cached_demos(path: str, meta: dict) -> record.Trajectories | None:
 
 
 def write_demos(path: str, traj: record.Trajectories, cfg: RunConfig) -> None:
-    """`traj` as the dataset `path`, replacing whatever stale set was there; staged, so a kill
-    leaves the old directory or the new one."""
+    """`traj` as the dataset `path`, replacing whatever stale set was there: the stale one is
+    removed first and the new one staged, so a kill leaves no set or the whole new one (a missing
+    set is collected again)."""
     shutil.rmtree(path, ignore_errors=True)
     meta = {k: v for k, v in heldout_meta(cfg).items() if k not in ("n", "horizon")}    # record.save writes both
     with files.staged_dir(path) as stage:

@@ -179,3 +179,16 @@ def test_ablations_train_their_arms_that_differ_in_data_as_one_program(tmp_path)
     assert groups("practice") == [["goalseye", "goalseye-paper-pool", "lfp-equal-updates"], ["lfp-equal-data"],
                                   ["lfp-r0.2-updates"]]
     assert groups("noise") == [["b0.05", "b0.1", "b0.2", "off"], ["paper-b0.05", "paper-b0.1", "paper-b0.2"]]
+
+
+@pytest.mark.slow
+def test_a_tables_demonstrations_collected_together_are_each_seeds_own():
+    """The setup of a table collects its lanes' demonstrations in one rollout per chunk
+    (demos.collect_lanes): on MuJoCo C each seed's records equal its own collection, bit for bit."""
+    from ttmjx.tools import demos
+    world = runconfig.tiny().world
+    together = demos.collect_lanes(world, "striker", 3, [4, 7], "c")
+    for seed, got in zip((4, 7), together):
+        alone = demos.collect(world, "striker", 3, seed, "c")
+        for a, b in zip(jax.tree.leaves(alone), jax.tree.leaves(got)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -23,8 +23,9 @@ from ttmjx.world.env import uniform_goals
 
 
 # The demonstrations collected last in this process, by (world, source, count, seed, backend):
-# the lanes of a table, collected together (`collect_for_lanes`), and a table's programs that
-# start from the same seeds' demonstrations (LFP at equal data after GoalsEye) take them from here.
+# the lanes of a table, collected together (`collect_for_lanes`), and a table's later programs
+# that start from the same seeds' demonstrations (LFP at 0.2's updates after GoalsEye) take them
+# from here. Kept until the next collection (a 15-lane paper-sim table: about 1 GB of host memory).
 _COLLECTED: dict = {}
 
 

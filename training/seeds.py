@@ -43,8 +43,9 @@ from training import budget, mesh, pool, runlog
 from training.checkpoint import Checkpointed, Counters
 from training.practice import Practice, stats_row
 from training.runconfig import RunConfig, to_json
-from training.trainer import (SEEDS_FILE, NonFiniteError, Run, finite_flags, is_eval_iteration, phase,
-                              practice_iterations, pretrain_iterations, round_episodes, total_iterations, _now)
+from training.trainer import (SEEDS_FILE, NonFiniteError, Run, finite_flags, is_checkpoint_iteration,
+                              is_eval_iteration, phase, practice_iterations, pretrain_iterations, round_episodes,
+                              total_iterations, _now)
 from training.update import acting_params, lane_knobs
 from ttmjx.commandline import install_stop_signals, restore_signals
 from ttmjx.world import files
@@ -158,8 +159,9 @@ class SeedRuns:
         # refused with the estimate before anything is compiled: each device holds its block of lanes
         budget.check_fits(cfg, seeds=self.lanes // self.devices, devices=self.devices)
         self.backend = Backend(cfg.world, resolve_backend(cfg.backend))
-        # each lane's Run makes and restores its own state on the device of its block, where
-        # `assemble` stacks the block: no device ever holds more than its own lanes
+        # each lane's Run makes its own state on the device of its block, where `assemble` stacks
+        # the block, so the lanes are never gathered on one device (a resumed lane is read onto
+        # the first device, one at a time, then moved to its block's)
         self.per_device = self.lanes // self.devices
         self.runs = [Run(c, None, progress, log, shared=(self.backend, mesh.one_device(self.device_of(i))))
                      for i, c in enumerate(cfgs)]
@@ -279,7 +281,7 @@ class SeedRuns:
                     r.metrics.write(row)
                     if any(k.startswith("eval_") for k in row):
                         last[s] = row
-                if (it + 1) % cfg.checkpoint_every == 0 or it + 1 == stop_at or self._stop:
+                if is_checkpoint_iteration(cfg, it, stop_at) or self._stop:
                     self.save(ck)
                 bar.update(int(np.sum(ck.counters.trajectories)) - before)
                 bar.set_postfix_str(runlog.postfix(mean_row(rows)))

@@ -66,6 +66,11 @@ def total_iterations(cfg: RunConfig) -> int:
     return pretrain_iterations(cfg) + practice_iterations(cfg)
 
 
+def is_checkpoint_iteration(cfg: RunConfig, it: int, stop_at: int) -> bool:
+    """Save after iteration `it`: every checkpoint_every iterations and at the last one run."""
+    return (it + 1) % cfg.checkpoint_every == 0 or it + 1 == stop_at
+
+
 def is_eval_iteration(cfg: RunConfig, it: int) -> bool:
     """Evaluate after the last pretraining round (the LFP point), every eval_every trajectories
     of practice, and at the end."""
@@ -380,7 +385,7 @@ class Run:
                 ck, row = self.step(ck, it)
                 last = row if any(k.startswith("eval_") for k in row) else last
                 self.metrics.write(row)
-                if (it + 1) % cfg.checkpoint_every == 0 or it + 1 == stop_at or self._stop:
+                if is_checkpoint_iteration(cfg, it, stop_at) or self._stop:
                     self.save(ck)
                 bar.update(int(ck.counters.trajectories) - before)
                 bar.set_postfix_str(runlog.postfix(row))

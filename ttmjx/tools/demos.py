@@ -235,13 +235,11 @@ def collect(cfg: World, source: str, n: int, seed: int, backend: str = "c", chun
     # MJX wants large batches (thousands of throws in flight); the C backend smaller chunks
     # so progress shows and memory stays small.
     chunk = chunk or be.kind.demo_chunk
-    key = jax.random.PRNGKey(seed)
     parts, truths = [], []
     bar = _bar(n, progress)
     for start in range(0, n, chunk):
         m = min(chunk, n - start)
-        k_throw, k_roll = jax.random.split(jax.random.fold_in(key, start))
-        th = thrower.sample_throws(k_throw, cfg, m)
+        k_roll, th = chunk_draws(cfg, seed, start, m)
         out = jax.tree.map(np.asarray, be.rollout(policy, params, k_roll, th, np.zeros((m, 2), np.float32),
                                                   truth=truth))
         parts.append(out[0] if truth else out)
@@ -253,6 +251,13 @@ def collect(cfg: World, source: str, n: int, seed: int, backend: str = "c", chun
     if not truth:
         return traj
     return traj, record.TrueTrack(*(np.concatenate(x) for x in zip(*truths)))
+
+
+def chunk_draws(cfg: World, seed: int, start: int, m: int):
+    """(rollout key, m throws) of the chunk of a collection of `seed` that starts at demonstration
+    `start`: what `collect` and `collect_lanes` both play, so their records agree."""
+    k_throw, k_roll = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(seed), start))
+    return k_roll, thrower.sample_throws(k_throw, cfg, m)
 
 
 def collect_lanes(cfg: World, source: str, n: int, seeds: list[int], backend: str = "c",
@@ -284,9 +289,9 @@ def collect_lanes(cfg: World, source: str, n: int, seeds: list[int], backend: st
         parts = []
         for start in range(0, n, chunk):
             m = min(chunk, n - start)
-            keys = [jax.random.split(jax.random.fold_in(jax.random.PRNGKey(s), start)) for s in played]
-            th = jax.tree.map(lambda *xs: jnp.stack(xs), *[thrower.sample_throws(k[0], cfg, m) for k in keys])
-            rec = be.rollout_seeds(policy, lanes, lay(jnp.stack([k[1] for k in keys])), lay(th),
+            draws = [chunk_draws(cfg, s, start, m) for s in played]
+            th = jax.tree.map(lambda *xs: jnp.stack(xs), *[d[1] for d in draws])
+            rec = be.rollout_seeds(policy, lanes, lay(jnp.stack([d[0] for d in draws])), lay(th),
                                    lay(jnp.zeros((width, m, 2), jnp.float32)))
             parts.append(jax.tree.map(np.asarray, rec))
             bar.update(m * len(group))
