@@ -56,21 +56,23 @@ def peak_memory() -> dict:
 
 
 def bench_training(name: str, seeds: int = 1, reps: int = 2, demos: int | None = None, backend: str | None = None,
-                   log=print) -> dict:
+                   log=print, mjx_impl: str = "jax") -> dict:
     """The round of preset `name` with `seeds` seeds in one program -> figures (seconds, rates;
     `throws_block_s` solves the throws of THROW_BLOCK rounds, once per that many rounds).
     `demos` caps the demonstrations collected (None: the preset's, so that the setup is timed as
-    the run does it)."""
+    the run does it); `mjx_impl` is the world's MJX implementation (jax or warp)."""
     scratch = tempfile.mkdtemp(prefix="ttmjx-bench-")   # the seeds' demonstrations; removed at the end
     try:
-        return _bench(name, seeds, reps, demos, backend, log, scratch)
+        return _bench(name, seeds, reps, demos, backend, log, scratch, mjx_impl)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
 
 
-def _bench(name: str, seeds: int, reps: int, demos: int | None, backend: str | None, log, scratch: str) -> dict:
+def _bench(name: str, seeds: int, reps: int, demos: int | None, backend: str | None, log, scratch: str,
+           mjx_impl: str = "jax") -> dict:
     cfg = preset(name)
-    cfg = dataclasses.replace(cfg, demos=min(cfg.demos, demos) if demos and cfg.demos else cfg.demos,
+    cfg = dataclasses.replace(cfg, world=dataclasses.replace(cfg.world, mjx_impl=mjx_impl),
+                              demos=min(cfg.demos, demos) if demos and cfg.demos else cfg.demos,
                               backend=backend or cfg.backend, run_dir=os.path.join(scratch, name))
     t0 = time.perf_counter()
     runs = SeedRuns(seed_configs(cfg, seeds), progress=False, log=log)

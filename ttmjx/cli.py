@@ -28,7 +28,7 @@ from training.baselines.config import ESConfig, PPOConfig, QTOptConfig, RewardCo
 from training import overrides
 from training.runconfig import PRESET_NAMES, RunConfig
 from ttmjx.world.backends import BACKENDS, backend_kind
-from ttmjx.world.config import CONTROL_RATES, THROW_DISTRIBUTIONS, World
+from ttmjx.world.config import CONTROL_RATES, MJX_IMPLS, THROW_DISTRIBUTIONS, World
 
 Backend = Literal[BACKENDS]
 
@@ -54,9 +54,12 @@ class WorldArgs(Report):
     """Throws with spin (off by default, as in the paper)."""
     control_hz: Literal[CONTROL_RATES] | None = None
     """Policy steps per second; None: the World's (100)."""
+    mjx_impl: Literal[MJX_IMPLS] = "jax"
+    """MJX's implementation on the mjx backend: jax or warp (MuJoCo Warp; pip install 'ttmjx[warp]')."""
 
     def world(self) -> World:
-        cfg = World() if self.control_hz is None else World(control_hz=self.control_hz)
+        cfg = World(mjx_impl=self.mjx_impl) if self.control_hz is None else \
+            World(control_hz=self.control_hz, mjx_impl=self.mjx_impl)
         return cfg.with_throws(self.distribution, spin=self.spin)
 
 
@@ -468,7 +471,8 @@ def throw(a: ThrowArgs) -> None:
 def bench(a: BenchArgs) -> None:
     if a.train is not None:
         from eval.bench_train import bench_training
-        out = bench_training(a.train, a.seeds, a.reps, log=lambda m: print(m, file=sys.stderr))
+        out = bench_training(a.train, a.seeds, a.reps, log=lambda m: print(m, file=sys.stderr),
+                             mjx_impl=a.mjx_impl)
         report(a, out, table({k: v for k, v in out.items() if k != "schedule"}) + f"\nschedule  {out['schedule']}")
         return
     from ttmjx.tools import bench as physics_bench

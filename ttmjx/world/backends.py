@@ -80,6 +80,20 @@ def import_mjx():
     return mjx
 
 
+# MuJoCo Warp's buffers (world.mjx_impl = "warp"): contacts over all worlds of a batch (the
+# scene has at most a few per world: ball with table, net or paddle), constraint rows per world.
+WARP_CONTACTS = 1 << 20
+WARP_CONSTRAINTS = 128
+
+
+def _require_warp():
+    """Raise naming the fix when world.mjx_impl = "warp" but warp-lang is missing."""
+    import importlib.util
+    if importlib.util.find_spec("warp") is None:
+        raise RuntimeError("world.mjx_impl='warp' needs warp-lang: pip install 'ttmjx[warp]' "
+                           "(or use --world.mjx-impl jax)")
+
+
 def _ramp(ctrl0, ctrl1, n: int):
     """[..., n, 8] targets interpolated linearly over the n physics steps of a control step."""
     w = (jnp.arange(1, n + 1, dtype=jnp.float32) / n)[:, None]
@@ -99,10 +113,17 @@ class MjxPhysics:
         mjx = import_mjx()
         self.cfg = cfg
         self.m = scene.model(cfg, fluid=False)  # zero density: MJX's box drag would be wrong
-        self.mx = mjx.put_model(self.m)
         self.lay = env.layout(self.m)
         self.ball_body = int(self.m.body("ball").id)
-        self._data0 = mjx.make_data(self.mx)
+        if cfg.mjx_impl == "warp":
+            _require_warp()
+            self.mx = mjx.put_model(self.m, impl="warp")
+            # Warp allocates its contact and constraint buffers up front: contacts are counted
+            # over every world of a batch (vmap's episodes and lanes alike), constraints per world.
+            self._data0 = mjx.make_data(self.m, impl="warp", naconmax=WARP_CONTACTS, njmax=WARP_CONSTRAINTS)
+        else:
+            self.mx = mjx.put_model(self.m)
+            self._data0 = mjx.make_data(self.mx)
 
     def step(self, qpos, qvel, ctrl0, ctrl1):
         """One control step ramping the targets from ctrl0 to ctrl1 [8]; see step_ctrl."""

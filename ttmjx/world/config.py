@@ -325,6 +325,7 @@ CELL_TRAINING = dataclasses.replace(TIMING_PROFILES["nominal"], delay_spread_s=0
 IDEAL = Timing(ideal_timing=True)
 
 CONTROL_RATES = (20, 60, 100)
+MJX_IMPLS = ("jax", "warp")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -350,6 +351,10 @@ class World:
     """Frames in the observation stack (the frame-stack policy reads them)."""
     timing: Timing = Timing()
     """Sensor and actuation timing (default: ideal); TIMING_PROFILES names the lab's."""
+    mjx_impl: str = "jax"
+    """MJX's implementation on the mjx backend: jax (MJX in JAX) or warp (MuJoCo Warp through
+    MJX, needs the `warp` extra: pip install 'ttmjx[warp]'). The same model and the same
+    physics; docs/BENCHMARKS.md has their speeds on this scene."""
 
     def __post_init__(self):
         if not isinstance(self.control_hz, int) or self.control_hz <= 0:
@@ -372,6 +377,8 @@ class World:
         if self.timing.jitter_s and self.timing.jitter_s >= shortest:
             raise ValueError(f"timing.jitter_s={self.timing.jitter_s} must be below the shortest sample "
                              f"period ({shortest:.6g} s)")
+        if self.mjx_impl not in MJX_IMPLS:
+            raise ValueError(f"world.mjx_impl={self.mjx_impl!r}; expected one of {MJX_IMPLS}")
         check_world(self)
 
     def sample_period_s(self, name: str) -> float:
