@@ -4,22 +4,20 @@
 # warp-lang's library (~390 MB unpacked, 95 MB as .tar.xz) is larger than one call may carry, so it
 # travels in parts over several calls to a machine kept warm (idle release 30 s: start the next
 # call at once); each call stages its part in .wstage/ (ignored: kept between calls):
-#   split -b 28M -d /tmp/warp_pkg.tar.xz .wx/part.     (a tar.xz of the wheel's contents)
-#   PHASE=stage bash scripts/dev/gpu_warp.sh           (carry .wx, one part at a time; the first
-#                                                       call also carries .wheels)
-#   PHASE=bench [SWEEP='name="flags" ...'] bash scripts/dev/gpu_warp.sh
+#   parts of a tar.xz of the wheel's contents (examples and tests left out): the first 11 MB
+#   (it travels with .wheels), then 30 MB each; put one at a time in .wx/ as part.NN
+#   PHASE=stage bash scripts/dev/gpu_warp.sh           (carry .wx; the first call also .wheels)
+#   PHASE=bench [SWEEP='name="flags" ...'] bash scripts/dev/gpu_warp.sh   (carry .wx: the last part)
 # bench: unpacks warp, then `ttmjx bench --backend mjx --batch B --mjx-impl jax|warp` (physics
 # alone) and `ttmjx bench --train paper-sim --mjx-impl jax|warp` (a practice round), into $OUT.
 source scripts/dev/device_setup.sh
-mkdir -p .wstage
-if [[ "${PHASE:-stage}" == stage ]]; then
-  cp .wx/* .wstage/ 2>/dev/null
-  log "staged: $(ls .wstage | tr '\n' ' ') $(du -sh .wstage | cut -f1)"
-  exit 0
-fi
+W8=/tmp/wstage; mkdir -p $W8
+cp .wx/* $W8/ 2>/dev/null
+log "staged: $(ls $W8 | tr "\n" " ") $(du -sh $W8 | cut -f1)"
+[[ "${PHASE:-stage}" == stage ]] && exit 0
 SP=$(python3 -c 'import site; print(site.getsitepackages()[0])')
 if ! python3 -c "import warp" 2>/dev/null; then
-  cat .wstage/part.* | tar xJf - -C "$SP" || { log "unpack failed: $(ls -la .wstage)"; exit 1; }
+  cat $W8/part.* | tar xJf - -C "$SP" || { log "unpack failed: $(ls -la $W8)"; exit 1; }
 fi
 python3 -c "import warp; warp.init(); print('warp', warp.__version__, 'cuda devices', warp.get_cuda_device_count())" 2>&1 | tail -1 | tee -a "$OUT/log.txt"
 if [[ -n "${SWEEP:-}" ]]; then
