@@ -7,7 +7,10 @@ rehearses the deployment over real sockets:
   on, RAPID running; takes the EgmSensor replies' planned joints as the arm's target.
 * Modbus TCP server (pymodbus): behaves like the gantry drive of deploy/robot/drivers/gantry.py's
   register map: a write with a toggled new-setpoint bit is a new gantry target; reads return
-  the actual positions and the status word.
+  the actual positions and the status word. Each connection is a link (_DriveLink): requests
+  may be pipelined (several in flight, replies matched by transaction id, as Modbus TCP allows);
+  each is taken off the wire on arrival, delayed by the link's faults from its arrival (not
+  queued behind the one before it), and carried out in arrival order.
 * Tracker stream (UDP): the station's ball samples (125 Hz, delivered with its latency) in
   deploy/robot/drivers/tracker.py's wire format, stamped with this computer's CLOCK_MONOTONIC.
 * Launcher and referee (JSON lines over TCP): `throw` launches the station's next throw,
@@ -50,8 +53,12 @@ import numpy as np
 from abb_robot_client._egm_protobuf import egm_pb2
 from google.protobuf.message import DecodeError
 from pymodbus.constants import ExcCodes
+from pymodbus.exceptions import ModbusIOException, NoSuchIdException
+from pymodbus.pdu import ExceptionResponse
 from pymodbus.server import ModbusTcpServer
+from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
+from pymodbus.transaction import TransactionManager
 
 from deploy.robot.drivers.config import CellConfig
 from deploy.robot.drivers.egm import DATA, MOTORS_ON, RAPID_RUNNING, RAPID_STOPPED
@@ -189,6 +196,7 @@ class Server:
         self.trk_seq, self.trk_last = 0, -math.inf
         # (arrival time, part, target) of each new arm / gantry target (the `arrivals` command)
         self.arrivals: collections.deque = collections.deque(maxlen=ARRIVALS_KEPT)
+        self.modbus_resumed = -math.inf          # when the drive last answered again after a stop
 
     # ------------------------------------------------------------------ physics loop
     def run(self, duration_s: float | None = None) -> None:
@@ -290,29 +298,38 @@ class Server:
             self.trk_out.send(pack_sample(self.trk_seq, stamp, x), f, now)
 
     # ------------------------------------------------------------------ Modbus (the drive)
-    async def modbus_action(self, fc: int, start: int, address: int, count: int, regs: list,
-                            values) -> ExcCodes | None:
-        """pymodbus SimDevice action: faults, then a write sets the target, a read the actuals."""
+    async def modbus_link(self, t_arrival: float, delay_s: float) -> ExcCodes | None:
+        """The link's faults on one request that arrived at t_arrival (delay_s: modbus.delay_ms
+        then): it is carried out delay_s after its arrival (a network's latency: requests in
+        flight are delayed side by side, none waits for the one before to be answered), unless
+        the drive has stopped or the request is lost (then an exception code)."""
+        await asyncio.sleep(max(0.0, t_arrival + delay_s - time.monotonic()))
         f, stopped = self.faults, False
         while f.after("modbus", "stop_s", time.monotonic()) and not self.stop.is_set():
             stopped = True
             await asyncio.sleep(0.05)          # the drive stops answering
             f = self.faults
         if stopped:
+            self.modbus_resumed = time.monotonic()
+        if stopped or t_arrival < self.modbus_resumed:
             # A request the stopped drive held is lost, not carried out when the drive answers
             # again: its writes were a session ago (a later session's homing saw the gantry
-            # leap to an old target).
+            # leap to an old target). So is every request that arrived before it answered again.
             self.counts["modbus_lost_in_stop"] += 1
             return ExcCodes.GATEWAY_NO_RESPONSE
-        if f.get("modbus", "delay_ms"):
-            await asyncio.sleep(f.get("modbus", "delay_ms") / 1000.0)
         if self.rng.random() < f.get("modbus", "loss"):
             self.counts["modbus_lost"] += 1
             return ExcCodes.GATEWAY_NO_RESPONSE
+        return None
+
+    async def modbus_action(self, fc: int, start: int, address: int, count: int, regs: list,
+                            values) -> ExcCodes | None:
+        """pymodbus SimDevice action (after the link, modbus_link): a write sets the target, a
+        read the actuals."""
         r = self.cell.gantry.registers
         if values is not None:
             return self._modbus_write(address, list(values), regs, start, r)
-        self._modbus_read(regs, start, r, f)
+        self._modbus_read(regs, start, r, self.faults)
         return None
 
     def _modbus_write(self, address, values, regs, start, r) -> ExcCodes | None:
@@ -354,7 +371,7 @@ class Server:
         r, g = self.cell.gantry.registers, self.cell.gantry
         block = SimData(0, count=r.span, values=0, datatype=DataType.REGISTERS)
         device = SimDevice(id=g.device_id, simdata=[block], action=self.modbus_action)
-        return ModbusTcpServer(device, address=(g.host, g.port))
+        return _DriveServer(self, device, address=(g.host, g.port))
 
     # ------------------------------------------------------------------ launcher and referee
     def command(self, req: dict) -> dict:
@@ -394,6 +411,73 @@ class Server:
         return {"counts": dict(self.counts), "egm": dict(self.egm_out.counts),
                 "tracker": dict(self.trk_out.counts), "faults": self.faults.spec,
                 "realtime_lag_s": time.monotonic() - self.s.time}
+
+
+class _DriveLink(ServerRequestHandler):
+    """One Modbus TCP connection to the simulated drive: the link and the drive's request queue.
+    pymodbus's own handler keeps one request per connection (the reply to a request answered
+    after the next one arrived goes out with the next one's transaction id; two requests in one
+    segment leave the second unread): it serves only a client that waits for each reply. Here each request is queued with its arrival time, the link's faults
+    (Server.modbus_link) delay it from that arrival, and the requests are carried out and
+    answered in arrival order, each reply with its own request's transaction id."""
+
+    def __init__(self, owner, *args):
+        super().__init__(owner, *args)
+        self.requests: asyncio.Queue = asyncio.Queue()
+        self.worker: asyncio.Task | None = None
+
+    def callback_data(self, data: bytes, addr: tuple | None = None) -> int:
+        used, app = 0, self.server.app
+        while used < len(data):
+            try:
+                n = TransactionManager.callback_data(self, data[used:], addr)   # one frame
+            except ModbusIOException as exc:    # as pymodbus's handler answers an undecodable one
+                self.server_send(ExceptionResponse(exc.fcode or 0, exception_code=ExcCodes.ILLEGAL_FUNCTION,
+                                                   device_id=exc.dev_id, transaction=exc.transaction_id), addr)
+                return len(data)
+            if not n:
+                break                           # the rest of a frame is still on its way
+            used += n
+            if self.last_pdu is not None:
+                delay_s = app.faults.get("modbus", "delay_ms") / 1000.0
+                self.requests.put_nowait((time.monotonic(), delay_s, self.last_pdu, self.last_addr))
+        if self.worker is None and not self.requests.empty():
+            self.worker = asyncio.get_running_loop().create_task(self._serve())
+        return used
+
+    async def _serve(self) -> None:
+        app = self.server.app
+        while True:
+            t, delay_s, pdu, addr = await self.requests.get()
+            code = await app.modbus_link(t, delay_s)
+            if code is not None:
+                response = ExceptionResponse(pdu.function_code, code)
+            else:
+                try:
+                    response = await pdu.datastore_update(self.server.context, pdu.dev_id)
+                except NoSuchIdException:
+                    response = ExceptionResponse(pdu.function_code, ExcCodes.GATEWAY_NO_RESPONSE)
+                except Exception:               # noqa: BLE001 - answered as pymodbus's handler does,
+                    app.counts["modbus_device_failures"] += 1   # and the link keeps serving
+                    response = ExceptionResponse(pdu.function_code, ExcCodes.DEVICE_FAILURE)
+            response.transaction_id, response.dev_id = pdu.transaction_id, pdu.dev_id
+            self.server_send(response, addr)
+
+    def callback_disconnected(self, exc: Exception | None) -> None:
+        if self.worker is not None:             # what the closed connection still held is dropped
+            self.worker.cancel()
+        super().callback_disconnected(exc)
+
+
+class _DriveServer(ModbusTcpServer):
+    """pymodbus's Modbus TCP server with a _DriveLink per connection."""
+
+    def __init__(self, app: Server, *args, **kwargs):
+        self.app = app
+        super().__init__(*args, **kwargs)
+
+    def callback_new_connection(self):
+        return _DriveLink(self, self.trace_packet, self.trace_pdu, self.trace_connect)
 
 
 class _LauncherHandler(socketserver.StreamRequestHandler):
