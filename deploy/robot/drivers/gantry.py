@@ -20,8 +20,13 @@ flight on the connection, and TCP keeps them in order.
   placed in time), its status word still read.
 * A request with no reply within timeout_s is logged (gantry_transaction) and the connection is
   opened anew; a reply whose transaction id is not in flight (a stale reply) is dropped, never
-  taken for another request's. A write the drive answers with a transient exception (busy,
-  gateway: the request was not carried out) is sent again if no newer target has been sent.
+  taken for another request's.
+* The drive starts a target when its new-setpoint bit differs from the one it holds. Replies
+  come in order, so the driver follows the drive's bit from them (and from the status word's
+  acknowledge bit where they cannot tell: at start, after a connection was dropped with a write
+  in flight); the newest target, if the drive refused it (busy, gateway: not carried out) or it
+  started nothing (a write before it in flight was refused, so it carried the drive's own bit),
+  is sent again with the bit the drive does not hold, unless the runner has set a newer one.
 
 The drive sees at most control_hz writes and poll_hz reads a second. A slow or lost transaction
 only delays the thread: the runner keeps ticking and sees the gantry's newest sample go stale
@@ -117,6 +122,7 @@ class ModbusGantry:
         self.latched: str | None = None
         self._pending: np.ndarray | None = None                # the newest target not yet sent
         self._toggle = 0                                       # the new-setpoint bit last sent
+        self._drive_bit: int | None = None     # the drive's, from the replies (None: not known)
         self.reads = self.writes = self.errors = self.stale_replies = 0
         self._rtts: collections.deque = collections.deque(maxlen=32)   # recent read round trips (s)
         self._late_in_row = 0
@@ -220,7 +226,11 @@ class ModbusGantry:
         if q is None:
             return
         r = self.regs
-        self._toggle ^= NEW_SETPOINT
+        # The bit the drive does not hold: the drive's own, once every write has been answered
+        # (_written follows it); else the one after the last sent (that write presumed started).
+        writing = any(kind == "write" for kind, _, _ in self._in_flight.values())
+        held = self._drive_bit if self._drive_bit is not None and not writing else self._toggle
+        self._toggle = held ^ NEW_SETPOINT
         velocity = int(min(round(self.cfg.velocity_m_s * 1000.0), 65535))
         block = {r.target_x: encode_int32(to_counts(q[0], r), r),
                  r.target_y: encode_int32(to_counts(q[1], r), r),
@@ -229,7 +239,8 @@ class ModbusGantry:
         self._write_seq += 1
         for i, (addr, values) in enumerate(runs):
             pdu = struct.pack(f">BHHB{len(values)}H", WRITE_MULTIPLE, addr, len(values), 2 * len(values), *values)
-            self._send("write", pdu, (addr, len(values), q, self._toggle, i == len(runs) - 1, self._write_seq))
+            has_control = addr <= r.control < addr + len(values)
+            self._send("write", pdu, (addr, len(values), q, self._toggle, has_control, self._write_seq))
 
     def _send_poll(self) -> None:
         r = self.regs
@@ -279,28 +290,37 @@ class ModbusGantry:
         if unit != self.cfg.device_id or pdu[0] & 0x7F != fc:
             raise ValueError(f"reply from unit {unit} with function {pdu[0]}, expected unit "
                              f"{self.cfg.device_id} function {fc}")
-        if pdu[0] & 0x80:
-            code = pdu[1] if len(pdu) > 1 else -1
-            self._error(now, f"{kind} at {what[0]}: exception code {code:#04x}")
-            if kind == "write" and what[5] == self._write_seq:
-                # The newest target was not carried out, so the drive still holds the bit before
-                # it: the next write carries this one's bit again (flipped once more it would
-                # match the drive's and start nothing). After a transient exception the target
-                # itself is sent again unless the runner has set a newer one; an older target
-                # is never resent, a newer one is already on its way.
-                self._toggle = what[3] ^ NEW_SETPOINT
-                if code in TRANSIENT:
-                    with self._lock:
-                        self._pending = what[2] if self._pending is None else self._pending
-            return
         if kind == "write":
-            if what[4]:                         # the last register run of its target
-                self.writes += 1
+            self._written(what, None if not pdu[0] & 0x80 else (pdu[1] if len(pdu) > 1 else -1), now)
+            return
+        if pdu[0] & 0x80:
+            self._error(now, f"read at {what[0]}: exception code {pdu[1] if len(pdu) > 1 else -1:#04x}")
             return
         lo, n = what
         if len(pdu) != 2 + 2 * n or pdu[1] != 2 * n:
             raise ValueError(f"read at {lo}: {len(pdu) - 2} bytes of registers, expected {2 * n}")
         self._reading(list(struct.unpack(f">{n}H", pdu[2:])), lo, rtt, now)
+
+    def _written(self, what, code: int | None, now: float) -> None:
+        """A write's reply (code: its exception code, None if carried out). The drive starts a
+        target when its new-setpoint bit differs from the one it holds; a write it refused
+        leaves that bit, so a write sent after it in flight carries the drive's own bit and
+        starts nothing. Replies come in order: the drive's bit is followed exactly here, and the
+        newest target, if it was refused (transient: busy, gateway) or started nothing, is sent
+        again with the bit the drive does not hold, unless the runner has set a newer one. An
+        older target is never resent: a newer one is on its way."""
+        addr, _, q, bit, has_control, seq = what
+        if code is not None:
+            self._error(now, f"write at {addr}: exception code {code:#04x}")
+        if not has_control:
+            return                              # a run without the control word starts nothing
+        started = code is None and (self._drive_bit is None or bit != self._drive_bit)
+        if code is None:
+            self._drive_bit = bit               # what it holds now, started or not
+            self.writes += started
+        if seq == self._write_seq and not started and (code is None or code in TRANSIENT):
+            with self._lock:
+                self._pending = q if self._pending is None else self._pending
 
     def _reading(self, w: list[int], lo: int, rtt: float, now: float) -> None:
         r = self.regs
@@ -311,6 +331,8 @@ class ModbusGantry:
         if latched:
             with self._lock:
                 self.latched = self.latched or latched
+        if self._drive_bit is None and not any(kind == "write" for kind, _, _ in self._in_flight.values()):
+            self._drive_bit = NEW_SETPOINT if status & ACK else 0    # acknowledged: the bit it holds
         if self._late(rtt, now):
             return
         q = np.array([decode_int32(w[r.actual_x - lo:r.actual_x - lo + 2], r),
@@ -355,6 +377,8 @@ class ModbusGantry:
         self._error(self.clock.now(), detail)
         if self._sock is not None:
             self._sock.close()
+        if any(kind == "write" for kind, _, _ in self._in_flight.values()):
+            self._drive_bit = None              # a write's fate unknown: the status word tells
         self._sock, self._rx, self._poll_tid = None, b"", None
         self._in_flight.clear()
 
