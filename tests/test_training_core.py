@@ -479,3 +479,17 @@ def test_overlapping_saves_put_stderr_back_whatever_order_they_end_in(tmp_path):
     finally:
         sys.stderr = before
     assert "from the first save" in shown.getvalue()
+
+
+def test_reading_a_checkpoint_logs_no_read_only_notices(tmp_path, caplog):
+    """Every evaluation and export opens the checkpoints read-only; Orbax's two notices about it
+    are dropped, other warnings are not."""
+    import logging
+    from training import checkpoint as ck
+    ck.save(str(tmp_path), 1, {"w": np.zeros(3, np.float32)}, {"preset": "x"})
+    with caplog.at_level(logging.WARNING, logger="absl"):
+        ck._manager(str(tmp_path), read_only=True).close()
+        logging.getLogger("absl").warning("another warning")
+    said = [r.getMessage() for r in caplog.records]
+    assert not any(m.startswith(("CheckpointManagerOptions.read_only=True", "Given directory is read only")) for m in said), said
+    assert "another warning" in said

@@ -122,11 +122,26 @@ def _savable(tree):
                         jax.random.key_data(x) if _is_key(x) else jnp.asarray(x), tree)
 
 
+class _ReadOnlyNotices(logging.Filter):
+    """Drops the two warnings Orbax logs whenever a manager is opened read-only, as every restore,
+    evaluation and export does: they say what was asked for, and a user's evaluation printed them
+    once per checkpoint it read."""
+    NOTICES = ("CheckpointManagerOptions.read_only=True", "Given directory is read only")
+
+    def filter(self, record):
+        return not str(record.getMessage()).startswith(self.NOTICES)
+
+
 def _manager(directory: str, keep: int | None = None, read_only: bool = False) -> ocp.CheckpointManager:
-    options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=not read_only, read_only=read_only,
-                                           enable_async_checkpointing=False)
-    return ocp.CheckpointManager(os.path.abspath(directory), options=options,
-                                 item_names=("state", "config"))
+    logger, quiet = logging.getLogger("absl"), _ReadOnlyNotices()
+    if read_only:
+        logger.addFilter(quiet)
+    try:
+        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=not read_only, read_only=read_only,
+                                               enable_async_checkpointing=False)
+        return ocp.CheckpointManager(os.path.abspath(directory), options=options, item_names=("state", "config"))
+    finally:
+        logger.removeFilter(quiet)
 
 
 def save(directory: str, step: int, tree, config: dict, keep: int = 3) -> None:
