@@ -3,10 +3,12 @@
 and the same goals and throws on the in-process station; prints one JSON object.
 
     python scripts/cell_figures.py EXPORT --goals 40 --seed 0 [--timing zero] [--faults SPEC]
-        [--runner-cpu 0 --server-cpu 1] [--inprocess [--action-delay-ms MS]] [--out DIR]
+        [--runner-cpu 0 --server-cpu 1 [--no-lead]] [--inprocess [--action-delay-ms MS]] [--out DIR]
 
 Over sockets it also reports the command transport delay per part (the runner's send to the
-target's arrival at the station, from serve's `arrivals`).
+target's arrival at the station, from serve's `arrivals`; the gantry's target as sent, after its
+lead), and the gantry link's measured latency and the lead applied (`gantry`: drivers/lead.py;
+`--no-lead` turns the lead off, for the comparison only: [gantry] compensate_latency = false).
 
 Tick timing from the episode logs: jitter = wake - deadline of executed ticks (p50/p99, ms),
 missed deadlines (skipped ticks) and overruns per 1,000 ticks.
@@ -65,6 +67,8 @@ def transport_delays(out_dir: str, n: int, arrivals: list, tol=(1e-6, 2e-6)) -> 
             except (OSError, ValueError):
                 continue
             ts, cmds = ep.extras["t_sent"], ep.extras["commands"][:, sl]
+            if part == "gantry" and "gantry_sent" in ep.extras:
+                cmds = ep.extras["gantry_sent"]     # the target as sent, after its lead
             prev = None
             for t, q in zip(ts, cmds):
                 if not np.isfinite(t):
@@ -87,10 +91,13 @@ def transport_delays(out_dir: str, n: int, arrivals: list, tol=(1e-6, 2e-6)) -> 
 
 
 def over_sockets(policy: str, goals, seed: int, faults: str, egm_hz: float, timing: str,
-                 tmp: str, server_cpu: int | None = None) -> dict:
+                 tmp: str, server_cpu: int | None = None, lead: bool = True) -> dict:
+    import dataclasses
+
     from deploy.robot.drivers.cell import Launcher, run_cell
     from deploy.sim.serve import serving
     cfg = cellconfig.loopback_config()
+    cfg = dataclasses.replace(cfg, gantry=dataclasses.replace(cfg.gantry, compensate_latency=lead))
     path = os.path.join(tmp, "cell.toml")
     with open(path, "w") as f:
         f.write(cellconfig.to_toml(cfg))
@@ -122,6 +129,8 @@ def main() -> None:
                    help="in-process: this action delay instead of the profile's (e.g. the measured transport)")
     p.add_argument("--runner-cpu", type=int, default=None, help="pin the runner (this process) to this core")
     p.add_argument("--server-cpu", type=int, default=None, help="pin `serve` to this core")
+    p.add_argument("--no-lead", action="store_true",
+                   help="over sockets: the gantry's targets without the latency lead (comparisons only)")
     a = p.parse_args()
     if a.runner_cpu is not None:
         os.sched_setaffinity(0, {a.runner_cpu})
@@ -142,10 +151,11 @@ def main() -> None:
         out["trained_timing"] = {k: out["timing"][k] for k in ("within_trained", "outside")}
         out["timing"] = tick_timing(os.path.join(tmp, "episodes"), len(goals))
     else:
-        out = over_sockets(a.policy, goals, a.seed, a.faults, a.egm_hz, a.timing, tmp, a.server_cpu)
+        out = over_sockets(a.policy, goals, a.seed, a.faults, a.egm_hz, a.timing, tmp, a.server_cpu, not a.no_lead)
     keep = ("episodes", "goals", "metrics", "faults", "driver_faults", "timing", "trained_timing", "transport", "overruns", "skipped",
-            "mode", "latency_ms", "realtime_factor")
+            "mode", "latency_ms", "realtime_factor", "gantry")
     print(json.dumps({k: out.get(k) for k in keep} | {"faults_injected": a.faults, "seed": a.seed, "timing_profile": a.timing, "action_delay_ms": a.action_delay_ms, "out": tmp,
+                                                     "lead": None if a.inprocess else not a.no_lead,
                                                      "server": (out.get("server") or {}).get("counts")},
                      default=float))
 

@@ -94,6 +94,42 @@ def test_a_session_plays_through_the_drivers(served):
     # every command reached the station: the arm's last target is the runner's last command
     assert stats["counts"]["egm_replies"] > 100 and stats["counts"]["modbus_targets"] > 10
     assert stats["counts"].get("egm_bad_replies", 0) == 0
+    # a nominal link: no lead, the gantry sent the runner's commands (drivers/lead.py)
+    assert summary["gantry"]["lead"]["enabled"] and summary["gantry"]["lead"]["lead_p50_ms"] == 0.0
+    shift = np.concatenate([np.abs(e.extras["gantry_sent"] - e.extras["commands"][:, 0:2]).max(axis=1)[e.extras["executed"].astype(bool)]
+                            for e in eps])
+    assert np.median(shift) <= 1e-12, shift
+
+
+def test_a_slow_gantry_link_is_measured_and_led_within_the_limits(served):
+    """modbus.delay_ms=10 over a whole session: the session reports the link's excess latency
+    (within 3 ms of the delay) and leads the gantry's targets by it (the lead's median), every
+    target sent within the contract's range and speed limits; the opt-out
+    ([gantry] compensate_latency = false) sends the commands as given, its excess still
+    reported."""
+    from deploy.robot.safety import count_violations, limits_from_contract
+    path, cfg, _, tmp = served
+    summary, eps, _ = session(served, "slow_gantry", faults="modbus.delay_ms=10")
+    link, lead = summary["gantry"]["link"], summary["gantry"]["lead"]
+    print(f"slow gantry link: {link}, lead: {lead}")
+    assert abs(link["excess_ms"] - 10.0) < 3.0 and abs(lead["lead_p50_ms"] - 10.0) < 3.0, (link, lead)
+    assert lead["led"] > 0.5 * lead["targets"] and eps[0].meta["gantry_link"]["excess_ms"] > 5.0
+    limits = limits_from_contract(CONTRACT)
+    for e in eps:
+        ran = e.extras["executed"].astype(bool)
+        sent = e.extras["commands"][ran].copy()
+        sent[:, 0:2] = e.extras["gantry_sent"][ran]
+        v = count_violations(limits, e.extras["t_sent"][ran], sent, tol=1e-9)
+        assert v.nonfinite == v.range == v.step == 0, v
+    off = tmp / "no_lead.toml"
+    off.write_text(cellconfig.to_toml(dataclasses.replace(
+        cfg, gantry=dataclasses.replace(cfg.gantry, compensate_latency=False))))
+    summary, eps, _ = session((str(off),) + served[1:], "slow_gantry_no_lead", faults="modbus.delay_ms=10")
+    assert not summary["gantry"]["lead"]["enabled"] and summary["gantry"]["lead"]["led"] == 0
+    assert summary["gantry"]["link"]["excess_ms"] > 5.0
+    for e in eps:
+        ran = e.extras["executed"].astype(bool)
+        assert np.array_equal(e.extras["gantry_sent"][ran], e.extras["commands"][ran, 0:2])
 
 
 def test_lossy_networks_are_logged_and_survived(served):
@@ -183,10 +219,15 @@ def test_bad_fault_specs_and_configs_name_the_value(tmp_path):
     for text, match in [("[egm]\nport = 70000\n", "port = 70000"), ("[egm]\nprt = 1\n", "egm].prt: unknown key"),
                         ("[gantry.registers]\nword_order = 'middle'\n", "word_order = 'middle'"),
                         ("[robot]\n", r"unknown section \[robot\]"), ("[egm\n", "not valid TOML"),
-                        ("[gantry]\nstale_s = 0.5\n", r"gantry\].stale_s = 0.5: expected at most 0.25")]:
+                        ("[gantry]\nstale_s = 0.5\n", r"gantry\].stale_s = 0.5: expected at most 0.25"),
+                        ("[gantry]\ncompensate_latency = 1\n", r"compensate_latency = 1: expected a bool"),
+                        ("[gantry]\nforward_share = 1.5\n", r"forward_share = 1.5: expected a share")]:
         (tmp_path / "c.toml").write_text(text)
         with pytest.raises(ValueError, match=match):
             cellconfig.load_cell_config(str(tmp_path / "c.toml"))
+    off = cellconfig.CellConfig(gantry=cellconfig.GantryConfig(compensate_latency=False, forward_share=1.0))
+    (tmp_path / "c.toml").write_text(cellconfig.to_toml(off))
+    assert cellconfig.load_cell_config(str(tmp_path / "c.toml")) == off
 
 
 def test_ports_in_use_and_unreachable_drive_are_one_line_errors(tmp_path):
@@ -560,3 +601,97 @@ def test_the_newest_gantry_target_reaches_the_drive_through_lost_requests(served
         g.close()
     assert lost > 5, lost
     assert [c in arrived for c in newest] == [True] * len(newest), (newest, sorted(arrived))
+
+
+# ------------------------------------------------------------------------ the gantry link's lead
+def test_the_gantry_lead_extrapolates_a_ramp_as_a_plain_first_order_predictor():
+    """drivers/lead.py, GantryLead against a plain reference on a known ramp: each target sent is
+    the target plus the ramp's velocity times the lead (v from the last two targets; the first
+    as given); no excess, or the opt-out, sends every target unchanged; a lead the speed limit
+    cannot follow is filtered as any command is (steps within speed x dt, within the range)."""
+    from deploy.robot.drivers.lead import MAX_LEAD_S, GantryLead
+    from deploy.robot.safety import Limits
+    dt, v = 0.01, np.array([0.4, -0.25])                 # s; m/s, within the limits below
+    wide = Limits(np.array([-5.0, -5.0]), np.array([5.0, 5.0]), np.array([2.0, 2.0]), dt)
+    t = np.arange(30) * dt
+    ramp = np.array([0.1, 0.2]) + t[:, None] * v
+    lead = 0.009
+    g = GantryLead(wide)
+    sent = np.array([g.target(q, tk, lead) for tk, q in zip(t, ramp)])
+    reference = ramp + v * lead                          # where the ramp is lead later
+    reference[0] = ramp[0]                               # no velocity yet from one target
+    np.testing.assert_allclose(sent, reference, rtol=0, atol=1e-12)
+    assert g.report()["led"] == len(t) and g.report()["lead_p50_ms"] == pytest.approx(1e3 * lead)
+    for excess, enabled in ((0.0, True), (lead, False)):
+        h = GantryLead(wide, enabled)
+        assert all(np.array_equal(h.target(q, tk, excess), q) for tk, q in zip(t, ramp))
+        assert h.report()["led"] == 0
+    # capped at MAX_LEAD_S
+    c = GantryLead(wide)
+    out = [c.target(q, tk, 1.0) for tk, q in zip(t[:3], ramp[:3])]
+    np.testing.assert_allclose(out[2], ramp[2] + v * MAX_LEAD_S, rtol=0, atol=1e-12)
+    # a speed limit the led ramp would break (its first led step jumps by v x lead): filtered
+    tight = Limits(np.array([-5.0, -5.0]), np.array([0.3, 5.0]), np.abs(v) * 1.05, dt)
+    f = GantryLead(tight)
+    sent = np.array([f.target(q, tk, lead) for tk, q in zip(t, ramp)])
+    assert np.all(np.abs(np.diff(sent, axis=0)) <= tight.speed * dt + 1e-12)
+    assert np.all(sent[:, 0] <= 0.3) and f.limited > 0
+
+
+def test_the_link_latency_is_the_median_round_trip_not_its_stalls():
+    """LinkLatency: the median of the recent round trips, scaled by forward_share; stalls of
+    this machine (a few 100 ms round trips) move it by nothing; the excess is what is above the
+    arm's own half EGM cycle, 0 before MIN_REPLIES and on a nominal link."""
+    from deploy.robot.drivers.lead import ALLOWANCE_S, MIN_REPLIES, LinkLatency
+    link = LinkLatency(0.5)
+    for _ in range(MIN_REPLIES - 1):
+        link.add(0.020)
+    assert link.excess_s() == 0.0 and link.report()["rtt_p50_ms"] is None
+    for i in range(60):
+        link.add(0.100 if i % 10 == 0 else 0.020)
+    assert link.forward_s() == pytest.approx(0.010) and link.excess_s() == pytest.approx(0.010 - ALLOWANCE_S)
+    nominal = LinkLatency(1.0)
+    for _ in range(40):
+        nominal.add(0.0008)
+    assert nominal.excess_s() == 0.0
+    with pytest.raises(ValueError, match="forward_share = 0: expected a share"):
+        LinkLatency(0)
+
+
+def test_the_gantry_link_estimate_follows_an_injected_delay(served):
+    """Over serve's drive (loopback_config: forward_share 1, its link delays requests only): on
+    the clean link the estimated excess is 0 (no lead: the targets go as given); with
+    modbus.delay_ms=10 the forward latency is the delay plus serve's own (~1 ms of millisecond
+    timers), so the excess is within 3 ms of the injected delay. Medians of the estimate along
+    the run, not its tail (a loaded 2-core machine)."""
+    from deploy.robot.drivers.gantry import ModbusGantry
+    from deploy.robot.hardware import MonotonicClock
+    _, cfg, launcher, _ = served
+    delay = 0.010
+    g = ModbusGantry(cfg.gantry, MonotonicClock()).start()
+
+    def estimates(n: int, warm: int = 30) -> np.ndarray:
+        """The excess estimated at each of n targets set at 100 Hz after `warm` of them (0.3 s:
+        the running median's window turned over)."""
+        deadline = time.monotonic() + 10.0      # the first readings, however loaded the machine
+        while g.read() is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        q0, out = g.read()[1], []
+        for i in range(warm + n):
+            g.set_target(q0 + np.array([1e-4 * (i + 1), 0.0]))
+            time.sleep(0.01)
+            if i >= warm:
+                out.append(g.link.excess_s())
+        return np.array(out)
+    try:
+        clean = estimates(30)
+        launcher.call("faults", spec=f"modbus.delay_ms={1000 * delay:g}")
+        late = estimates(30)
+        forward = g.link.forward_s()
+    finally:
+        launcher.call("faults", spec="")
+        g.close()
+    print(f"gantry link excess: clean p50 {1e3 * np.median(clean):.2f} ms, {1e3 * delay:g} ms link p50 "
+          f"{1e3 * np.median(late):.2f} ms (forward {1e3 * forward:.2f} ms)")
+    assert np.median(clean) == 0.0, 1e3 * clean
+    assert abs(np.median(late) - delay) < 0.003, 1e3 * late

@@ -66,6 +66,11 @@ def limits_from_contract(c: Contract) -> Limits:
                   np.asarray(c.max_speed, np.float64) * c.speed_margin, c.dt)
 
 
+def part_limits(limits: Limits, joints: slice) -> Limits:
+    """The limits of some joints only (e.g. slice(0, 2): the gantry's), for safe_target."""
+    return Limits(limits.lower[joints], limits.upper[joints], limits.speed[joints], limits.dt)
+
+
 class Command(NamedTuple):
     """The filter's output for one tick."""
     target: np.ndarray    # [8] what may be sent
@@ -76,13 +81,14 @@ def safe_target(limits: Limits, action, last_target: np.ndarray, elapsed: float 
                 speed_scale: float = 1.0) -> Command:
     """[8] target within the joint ranges and one speed-limited step of last_target [8].
 
-    action: the policy's [8] output (anything: it is checked here). elapsed: seconds since the
+    action: the policy's [8] output (anything: it is checked here); with the limits of some of
+    the joints only (Limits of [k] arrays, e.g. the gantry's 2 in drivers/lead.py), [k] of them. elapsed: seconds since the
     last command was sent (None = a full tick). speed_scale <= 1 slows the step (moving home).
     """
     last = np.asarray(last_target, np.float64)
     a = np.asarray(action, np.float64)
     faults = 0
-    if a.shape != (8,) or not np.all(np.isfinite(a)):
+    if a.shape != limits.lower.shape or not np.all(np.isfinite(a)):
         return Command(last.copy(), FAULTS["policy_nonfinite"])
     clamped = np.clip(a, limits.lower, limits.upper)
     if np.any(clamped != a):

@@ -13,9 +13,17 @@ as a slower gantry). So that one fresh part never hides a silent one, a part who
 sample is older than its stale_s freezes read() at the last sample it returned: the runner
 sees that sample go stale (joint_stale, HOLD). Since the joined time waits for the gantry's line,
 a gantry reading later than stale_s minus one poll period (90 ms by default) already holds.
+
+Commands: send() gives the arm its 6 targets as they are, and the gantry its 2 led by the
+Modbus link's latency above the arm's own (drivers/lead.py, GantryLead: extrapolated along the
+recent targets' velocity by the excess, through the safety filter; unchanged on a nominal
+link). Each episode's log carries what the gantry was sent (extras `gantry_sent` [T, 2],
+`gantry_lead_s` [T]) and its meta the link's estimate; the session's summary both
+(`gantry.link`, `gantry.lead`).
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import json
 import socket
@@ -29,19 +37,26 @@ from deploy.robot.drivers.config import CellConfig, LauncherConfig
 from deploy.robot.drivers.egm import EgmArm
 from deploy.robot.drivers.faults import FaultLog, window_summary
 from deploy.robot.drivers.gantry import ModbusGantry
+from deploy.robot.drivers.lead import GantryLead
 from deploy.robot.drivers.tracker import UdpTracker
 from deploy.robot.hardware import Clock
+from deploy.robot.safety import Limits, part_limits
 
 GANTRY, ARM = slice(0, 2), slice(2, 8)
 
 
 class CellRobot:
-    """deploy.robot.hardware.Robot over ModbusGantry + EgmArm."""
+    """deploy.robot.hardware.Robot over ModbusGantry + EgmArm. limits: the contract's [8]
+    (deploy.robot.safety.limits_from_contract) for the gantry's lead (None: no lead, targets sent
+    as given)."""
 
-    def __init__(self, gantry: ModbusGantry, arm: EgmArm, clock: Clock):
+    def __init__(self, gantry: ModbusGantry, arm: EgmArm, clock: Clock, limits: Limits | None = None):
         self.gantry, self.arm, self.clock = gantry, arm, clock
         self.stale_s = (gantry.cfg.stale_s, arm.cfg.stale_s)
         self._last = (-np.inf, np.full(8, np.nan))
+        self.lead = None if limits is None else GantryLead(part_limits(limits, GANTRY), gantry.cfg.compensate_latency)
+        # (time, gantry target sent [2], lead s) of the recent sends, for the episode logs
+        self.sent: collections.deque = collections.deque(maxlen=4096)
 
     def parts(self) -> tuple:
         """(gantry sample, arm sample): each (receipt time, q) or None."""
@@ -80,7 +95,28 @@ class CellRobot:
         if q.shape != (8,) or not np.all(np.isfinite(q)):
             raise ValueError(f"CellRobot.send: expected 8 finite targets, got {q!r}")
         self.arm.set_target(q[ARM])
-        self.gantry.set_target(q[GANTRY])
+        t, g, lead = self.clock.now(), q[GANTRY], 0.0
+        if self.lead is not None:
+            g = self.lead.target(g, t, self.gantry.link.excess_s())
+            lead = self.lead.leads[-1]
+        self.gantry.set_target(g)
+        self.sent.append((t, g.copy(), lead))
+
+    def sent_at(self, t_sent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(gantry target sent [T, 2] m, its lead [T] s) for the runner's send times t_sent [T]
+        (NaN: no send; each the first send at or after it: the runner reads its clock just
+        before robot.send)."""
+        t_sent = np.asarray(t_sent, np.float64)
+        q, lead = np.full((t_sent.size, 2), np.nan), np.full(t_sent.size, np.nan)
+        rec = list(self.sent)
+        if not rec:
+            return q, lead
+        times = np.array([r[0] for r in rec])
+        for i, t in enumerate(t_sent):
+            j = np.searchsorted(times, t) if np.isfinite(t) else len(rec)
+            if j < len(rec):
+                q[i], lead[i] = rec[j][1], rec[j][2]
+        return q, lead
 
     def wait_for_feedback(self, timeout_s: float) -> None:
         """Until both parts have reported (ValueError naming the silent ones after timeout_s)."""
@@ -133,7 +169,8 @@ class Cell:
             self.arm = self._keep(EgmArm(cfg.egm, clock, contract.dt, self.faults).start())
             self.gantry = self._keep(ModbusGantry(cfg.gantry, clock, self.faults).start())
             self.launcher = self._keep(Launcher(cfg.launcher)) if cfg.launcher else None
-            self.robot = CellRobot(self.gantry, self.arm, clock)
+            from deploy.robot.safety import limits_from_contract
+            self.robot = CellRobot(self.gantry, self.arm, clock, limits_from_contract(contract))
             try:
                 self.robot.wait_for_feedback(feedback_timeout_s)
             except ValueError as e:
@@ -205,10 +242,12 @@ class _Session:
     def complete(self, i: int, ep):
         now = self.cell.clock.now()
         meta = {**ep.meta, "station": "cell",
-                **window_summary(self.cell.faults.between(self.t_window, now))}
+                **window_summary(self.cell.faults.between(self.t_window, now)),
+                "gantry_link": self.cell.gantry.link.report()}
         self.t_window = now
         from deploy.robot.episode_log import Episode
-        ep = Episode(ep.traj, ep.extras, meta)
+        sent, lead = self.cell.robot.sent_at(ep.extras["t_sent"])
+        ep = Episode(ep.traj, {**ep.extras, "gantry_sent": sent, "gantry_lead_s": lead}, meta)
         if self.cell.launcher is None:
             return ep
         events = self.cell.launcher.call("finish", max_s=self.finish_s)["events"]
@@ -220,7 +259,8 @@ class _Session:
         out = {**self.about, "driver_faults": dict(self.cell.faults.counts),
                "egm": {"received": self.cell.arm.received, "replies": self.cell.arm.replies},
                "gantry": {"reads": self.cell.gantry.reads, "writes": self.cell.gantry.writes,
-                          "errors": self.cell.gantry.errors},
+                          "errors": self.cell.gantry.errors, "link": self.cell.gantry.link.report(),
+                          "lead": None if self.cell.robot.lead is None else self.cell.robot.lead.report()},
                "tracker": {"received": self.cell.tracker.received, "dropped": self.cell.tracker.dropped}}
         if self.cell.launcher is not None:
             from deploy.robot.outcomes import goal_summary, latency_ms

@@ -69,6 +69,10 @@ class GantryConfig:
     velocity_m_s: float = 1.0   # the fixed positioning velocity of every target
     timeout_s: float = 0.05     # one Modbus transaction
     stale_s: float = 0.1        # no reading for this long: the Robot's feedback freezes (HOLD)
+    # The link's latency compensation (deploy/robot/drivers/lead.py): each target is led by the
+    # link's one-way latency above the arm's own (forward_share x the median round trip).
+    compensate_latency: bool = True     # false: targets sent as given (comparisons only)
+    forward_share: float = 0.5  # of the round trip, on the way to the drive (0.5: a symmetric link)
     registers: Registers = Registers()
 
 
@@ -112,7 +116,7 @@ def _build(cls, table: dict, where: str):
         if key == "registers":
             values[key] = _build(Registers, value, f"{where}.registers")
             continue
-        if isinstance(default, bool) or not isinstance(value, (type(default), int)) or isinstance(value, bool):
+        if isinstance(default, bool) != isinstance(value, bool) or not isinstance(value, (type(default), int)):
             raise ValueError(f"{where}.{key} = {value!r}: expected a {type(default).__name__}")
         values[key] = type(default)(value)
     out = cls(**values)
@@ -128,6 +132,8 @@ def _check(obj, where: str) -> None:
         if f.name in ("stale_s", "poll_hz", "velocity_m_s", "timeout_s", "counts_per_m") and not (
                 math.isfinite(v) and v > 0):
             raise ValueError(f"{where}.{f.name} = {v}: expected a finite number > 0")
+        if f.name == "forward_share" and not (math.isfinite(v) and 0 < v <= 1):
+            raise ValueError(f"{where}.forward_share = {v}: expected a share of the round trip in (0, 1]")
         if f.name == "offset_s" and not math.isfinite(v):
             raise ValueError(f"{where}.offset_s = {v}: expected a finite number")
         if f.name == "word_order" and v not in ("big", "little"):
@@ -184,6 +190,8 @@ def to_toml(cfg: CellConfig) -> str:
 
 
 def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
     if isinstance(v, str):
         return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
     return repr(v)
@@ -200,8 +208,10 @@ def free_port(kind: int) -> int:
 
 
 def loopback_config() -> CellConfig:
-    """A cell on this computer (a `serve` rehearsal): every port a free loopback port."""
+    """A cell on this computer (a `serve` rehearsal): every port a free loopback port. The
+    gantry link's round trip is all on the way to the drive: serve's link delays the requests
+    and answers each at once when carried out (deploy/sim/serve.py, Server.modbus_link)."""
     return CellConfig(egm=EgmConfig(port=free_port(socket.SOCK_DGRAM)),
-                      gantry=GantryConfig(port=free_port(socket.SOCK_STREAM)),
+                      gantry=GantryConfig(port=free_port(socket.SOCK_STREAM), forward_share=1.0),
                       tracker=TrackerConfig(port=free_port(socket.SOCK_DGRAM)),
                       launcher=LauncherConfig(port=free_port(socket.SOCK_STREAM)))

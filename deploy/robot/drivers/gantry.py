@@ -27,6 +27,9 @@ flight on the connection, and TCP keeps them in order.
   in flight); the newest target, if the drive refused it (busy, gateway: not carried out) or it
   started nothing (a write before it in flight was refused, so it carried the drive's own bit),
   is sent again with the bit the drive does not hold, unless the runner has set a newer one.
+* Every reply's round trip (reads and writes, from the request's send) goes to `link`
+  (drivers/lead.py, LinkLatency): the link's latency, whose excess over the arm's own the
+  cell's Robot leads the gantry's targets by (drivers/cell.py).
 
 The drive sees at most control_hz writes and poll_hz reads a second. A slow or lost transaction
 only delays the thread: the runner keeps ticking and sees the gantry's newest sample go stale
@@ -63,6 +66,7 @@ from pymodbus.client import ModbusTcpClient
 from deploy.robot.drivers.config import GantryConfig, Registers
 from deploy.robot.drivers.faults import FaultLog
 from deploy.robot.drivers.history import SampleHistory
+from deploy.robot.drivers.lead import LinkLatency
 from deploy.robot.hardware import Clock
 
 ENABLE, NEW_SETPOINT = 1, 2                 # control bits
@@ -125,6 +129,9 @@ class ModbusGantry:
         self._drive_bit: int | None = None     # the drive's, from the replies (None: not known)
         self.reads = self.writes = self.errors = self.stale_replies = 0
         self._rtts: collections.deque = collections.deque(maxlen=32)   # recent read round trips (s)
+        # every reply's round trip (reads and writes): the link's latency, for the lead that
+        # makes up for its excess (drivers/lead.py; the runner's send reads it)
+        self.link = LinkLatency(cfg.forward_share)
         self._late_in_row = 0
         # Only the gantry thread touches these: the requests in flight by transaction id, each
         # (kind, time.monotonic() when sent, what it carried); the read in flight; targets sent.
@@ -276,6 +283,7 @@ class ModbusGantry:
                 self.faults.add(now, "gantry", "gantry_transaction", f"stale reply (transaction {tid}): dropped")
                 continue
             kind, sent, what = request
+            self.link.add(mono - sent)
             if kind == "read":
                 self._poll_tid = None
             try:
