@@ -226,10 +226,21 @@ def robot_run(a: RobotRunArgs, sim_station: Callable[..., dict] | None = None) -
             f"hit rate {m.get('hit_rate', 0):.0%}; " if m else "") +
            (f"timing {tm['source']}{' (inside the trained range)' if tm['within_trained'] else ''}; "
             if tm else "") +
-           f"faults {out['faults']}; logs in {out['out']}" +
+           f"faults {out['faults']}; " + gantry_link_line(out.get("gantry")) + f"logs in {out['out']}" +
            (f"\n{timing_line(tm)}" if tm and not tm["within_trained"] else ""))
     if out["episodes"] != out["goals"]:
         sys.exit(1)
+
+
+def gantry_link_line(gantry: dict | None) -> str:
+    """'gantry link +X ms over the arm's, targets led Y ms (p50); ' from a cell session's
+    summary (`gantry`: drivers/lead.py's reports), '' for other stations."""
+    if not gantry or not gantry.get("link"):
+        return ""
+    link, lead = gantry["link"], gantry.get("lead") or {}
+    led = (f"targets led {lead['lead_p50_ms']:.1f} ms (p50)" if lead.get("enabled")
+           else "targets not led ([gantry] compensate_latency = false)")
+    return f"gantry link +{link['excess_ms']:.1f} ms over the arm's, {led}; "
 
 
 def robot_bench(a: RobotBenchArgs) -> None:
