@@ -33,7 +33,7 @@ from eval import table_cells
 from eval import tables
 from training import overrides, runconfig
 from training.runconfig import RunConfig
-from training.trainer import practice_iterations, pretrain_iterations
+from training.schedule import practice_iterations, pretrain_iterations
 
 log = print
 

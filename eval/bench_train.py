@@ -22,13 +22,14 @@ import time
 import jax
 import numpy as np
 
-from eval.evaluate import training_evaluation_seeds
+from eval.evaluate import training_evaluation
 from training.cache import add_episodes
 from training.practice import THROW_BLOCK, practice_policy
 from training.runconfig import preset
-from training.seeds import SeedRuns, seed_configs
-from training.trainer import (is_checkpoint_iteration, is_eval_iteration, practice_iterations, pretrain_iterations,
-                              total_iterations)
+from training.schedule import (is_checkpoint_iteration, is_eval_iteration, practice_iterations, pretrain_iterations,
+                               total_iterations)
+from training.seeds import seed_configs
+from training.trainer import Run
 from training.update import acting_params
 from ttmjx.world.env import uniform_goals
 
@@ -75,7 +76,7 @@ def _bench(name: str, seeds: int, reps: int, demos: int | None, backend: str | N
                               demos=min(cfg.demos, demos) if demos and cfg.demos else cfg.demos,
                               backend=backend or cfg.backend, run_dir=os.path.join(scratch, name))
     t0 = time.perf_counter()
-    runs = SeedRuns(seed_configs(cfg, seeds), progress=False, log=log)
+    runs = Run(seed_configs(cfg, seeds), progress=False, log=log)   # one seed: a batch of one, as `ttmjx train`
     ck = jax.block_until_ready(runs.start())   # as the run starts: demonstrations, states, first saves
     setup_s = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -105,7 +106,7 @@ def _bench(name: str, seeds: int, reps: int, demos: int | None, backend: str | N
     if pr.train_loop is not None:
         piece("updates", lambda: pr.train_loop(ck.state, cache, keys))
     piece("round", lambda: pr.iteration(ck.state, ck.cache, keys, throws))
-    evaluate = training_evaluation_seeds(cfg)
+    evaluate = training_evaluation(seed_configs(cfg, seeds))
     piece("evaluation", lambda: evaluate(params, be, keys))
     del cache, traj
 

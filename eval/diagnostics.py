@@ -39,7 +39,7 @@ class RunRecord(NamedTuple):
 def read_run(run_dir: str) -> RunRecord:
     """The run's configuration, metrics and pool; ValueError naming the path and what is missing
     when `run_dir` is not a training run or has no practice round yet."""
-    from training.trainer import SEEDS_FILE
+    from training.rundir import SEEDS_FILE
     if not os.path.isdir(run_dir):
         raise ValueError(f"{run_dir}: not a directory; expected a training run (ttmjx train --run-dir)")
     if os.path.exists(os.path.join(run_dir, SEEDS_FILE)):

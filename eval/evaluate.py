@@ -10,7 +10,7 @@ import math
 import jax
 import numpy as np
 
-from eval.heldout import with_heldout_loss, with_heldout_loss_seeds
+from eval.heldout import with_heldout_loss
 from eval.report import check_out_dir, write_eval_dir
 from models.config import PolicyConfig
 from models.policy import ensemble_size, make_policy, member
@@ -124,29 +124,22 @@ def with_regions(metrics: dict, tr: Trajectories, table, members: int | None = N
     return out
 
 
-def training_evaluation(cfg, heldout: bool = False):
-    """The evaluation a training run calls (training.trainer.Run's `evaluate`): cfg.eval_goals
-    uniform goals, the whole ensemble playing, with success by goal region; heldout=True adds
-    the loss on held-out demonstrations (eval.heldout: `heldout_loss`, `member<i>_heldout_loss`;
-    none without demonstrations). (params, backend, key) -> metrics."""
-    def evaluate(params, backend: Backend, key) -> dict:
-        metrics, tr = uniform_run(cfg.world, cfg.policy, params, backend, key, cfg.eval_goals,
-                                  members=cfg.train.members)
-        return with_regions(metrics, tr, cfg.world.table, cfg.train.members)
-    return with_heldout_loss(cfg, evaluate) if heldout else evaluate
+def training_evaluation(cfgs, heldout: bool = False):
+    """The evaluation of a training program's lanes (training.trainer.Run calls it with its
+    lanes' configs, in lane order; one RunConfig is a lane of one): (params [L, ...], backend,
+    keys [L]) -> [metrics] per lane, each lane's goals and throws as if it ran alone:
+    cfg.eval_goals uniform goals, the whole ensemble playing, with success by goal region.
+    heldout=True adds each run's loss on its own held-out demonstrations (eval.heldout:
+    `heldout_loss`, `member<i>_heldout_loss`; none without demonstrations)."""
+    cfgs = [cfgs] if not isinstance(cfgs, (list, tuple)) else list(cfgs)
+    cfg = cfgs[0]
 
-
-def training_evaluation_seeds(cfg, heldout: list | None = None):
-    """training_evaluation for the seeds of a batch (training.seeds.SeedRuns): (params [S, ...],
-    backend, keys [S]) -> [metrics] per seed, every seed's goals and throws as if it ran alone.
-    heldout: the batch's run configs in lane order (training.seeds.seed_configs), to add each
-    run's loss on its own held-out demonstrations (eval.heldout); None: none."""
     def evaluate(params, backend: Backend, keys) -> list[dict]:
         metrics, tr = uniform_runs(cfg.world, cfg.policy, params, backend, keys, cfg.eval_goals,
                                    members=cfg.train.members)
         return [with_regions(m, Trajectories(*(x[s] for x in tr)), cfg.world.table, cfg.train.members)
                 for s, m in enumerate(metrics)]
-    return evaluate if heldout is None else with_heldout_loss_seeds(heldout, evaluate)
+    return with_heldout_loss(cfgs, evaluate) if heldout else evaluate
 
 
 EVAL_UNIFORM_GOALS = 200     # `--goals uniform`: as many uniform goals as `ttmjx eval`'s default

@@ -24,7 +24,6 @@ from models.config import PolicyConfig
 from training import pool
 from training.cache import empty_cache
 from training.loss import policy_loss
-from training.mesh import is_primary
 from training.runconfig import RunConfig
 from training.sampler import Batch, sample_subsequences
 from ttmjx.tools import demos
@@ -52,7 +51,7 @@ def heldout_meta(cfg: RunConfig) -> dict:
 def heldout_sets(cfgs: list[RunConfig]) -> list:
     """Each run's held-out demonstrations ([HELDOUT_DEMOS, T, ...] of cfg.demo_source at
     heldout_seed(cfg); None without demonstrations): read from RUN/heldout_demos, or collected and
-    written there (by the primary process), the sets not on disk collected together, a source at a time (demos.collect_lanes: the records of each
+    written there, the sets not on disk collected together, a source at a time (demos.collect_lanes: the records of each
     seed's own collection), so a batch of lanes does not collect its sets one after another."""
     out = [cached_demos(os.path.join(c.run_dir, HELDOUT_DIR), heldout_meta(c)) if c.demos else None for c in cfgs]
     todo: dict = {}
@@ -63,8 +62,7 @@ def heldout_sets(cfgs: list[RunConfig]) -> list:
         firsts = [idx[0] for idx in runs.values()]   # padded lanes repeat a run: collected once
         trajs = demos.collect_lanes(world, source, HELDOUT_DEMOS, [heldout_seed(cfgs[i]) for i in firsts], backend)
         for idx, traj in zip(runs.values(), trajs):
-            if is_primary():
-                write_demos(os.path.join(cfgs[idx[0]].run_dir, HELDOUT_DIR), traj, cfgs[idx[0]])
+            write_demos(os.path.join(cfgs[idx[0]].run_dir, HELDOUT_DIR), traj, cfgs[idx[0]])
             for i in idx:
                 out[i] = traj
     return out
@@ -151,19 +149,7 @@ class HeldOut:
         return [loss_metrics(loss) if c.demos else {} for c, loss in zip(self.cfgs, losses)]
 
 
-def with_heldout_loss(cfg: RunConfig, evaluate):
-    """A run's evaluation (params [N, ...], backend, key) -> metrics, plus the held-out loss
-    (module docstring); `evaluate` itself for a run without demonstrations."""
-    if not cfg.demos:
-        return evaluate
-    held = HeldOut([cfg])
-
-    def evaluated(params, backend, key) -> dict:
-        return {**evaluate(params, backend, key), **held.metrics(jax.tree.map(lambda x: x[None], params))[0]}
-    return evaluated
-
-
-def with_heldout_loss_seeds(cfgs: list[RunConfig], evaluate):
+def with_heldout_loss(cfgs: list[RunConfig], evaluate):
     """The evaluation of a batch's lanes (params [L, N, ...], backend, keys [L]) -> [metrics] per
     run, plus each run's held-out loss on its own held-out set (cfgs: the batch's runs, in lane order)."""
     if not any(c.demos for c in cfgs):

@@ -19,10 +19,10 @@ from typing import Any, Callable, NamedTuple
 import jax
 import numpy as np
 
-from eval.evaluate import training_evaluation, training_evaluation_seeds, uniform_run
+from eval.evaluate import training_evaluation, uniform_run
 from training.checkpoint import load_checkpoint
 from training.runlog import MetricsLog
-from training.seeds import SeedRuns, program_key
+from training.seeds import program_key
 from training.trainer import Run
 from ttmjx.world import files
 from ttmjx.world.backends import Backend, resolve_backend
@@ -97,7 +97,7 @@ def check_run_matches(cell: Cell) -> None:
     except (OSError, ValueError):
         return
     if isinstance(saved, dict):
-        from training.trainer import check_same_config
+        from training.rundir import check_same_config
         try:
             check_same_config(cell.config, saved)
         except ValueError as e:
@@ -262,16 +262,14 @@ def add_wall_time(run_dir: str, seconds: float) -> dict:
 
 # -- the GoalsEye trainer ---------------------------------------------------------------------
 def goalseye(cfg, progress: bool = True) -> Outcome:
-    """Train (or resume) cfg.run_dir with training.trainer.Run, then evaluate its final policy."""
-    out = Run(cfg, evaluate=training_evaluation(cfg), progress=progress).run()
-    if not out["finished"]:
-        return Outcome(False, out["stopped_by_signal"], {}, [], {})
-    return _finished(cfg.run_dir)
+    """Train (or resume) cfg.run_dir, a batch of one, then evaluate its final policy."""
+    return goalseye_seeds([cfg], progress)[0]
 
 
 def goalseye_seeds(cfgs: list, progress: bool = True) -> list[Outcome]:
-    """goalseye for the seeds of one variant, trained together (training.seeds.SeedRuns)."""
-    out = SeedRuns(cfgs, evaluate=training_evaluation_seeds(cfgs[0]), progress=progress).run()
+    """Train (or resume) the runs of one program together (training.trainer.Run), then evaluate
+    each one's final policy."""
+    out = Run(cfgs, training_evaluation, progress=progress).run()
     if not out["finished"]:
         return [Outcome(False, out["stopped_by_signal"], {}, [], {}) for _ in cfgs]
     return [_finished(c.run_dir) for c in cfgs]

@@ -3,12 +3,18 @@
 and the same goals and throws on the in-process station; prints one JSON object.
 
     python scripts/cell_figures.py EXPORT --goals 40 --seed 0 [--timing zero] [--faults SPEC]
-        [--runner-cpu 0 --server-cpu 1 [--no-lead]] [--inprocess [--action-delay-ms MS]] [--out DIR]
+        [--runner-cpu 0 --server-cpu 1 [--no-lead]] [--out DIR]
+        [--inprocess [--action-delay-ms MS] [--gantry-late-ms MS [--lead-ms MS]]]
 
 Over sockets it also reports the command transport delay per part (the runner's send to the
 target's arrival at the station, from serve's `arrivals`; the gantry's target as sent, after its
 lead), and the gantry link's measured latency and the lead applied (`gantry`: drivers/lead.py;
 `--no-lead` turns the lead off, for the comparison only: [gantry] compensate_latency = false).
+
+In process, `--gantry-late-ms` sets the gantry's part of every command that much later than the
+arm's (what a slow Modbus link does over sockets, here on the simulated clock: no machine load in
+the figure), led by `--lead-ms` through the cell's GantryLead (deploy/robot/drivers/lead.py; the
+lead the cell would apply for that link is the lateness minus its allowance, 2 ms).
 
 Tick timing from the episode logs: jitter = wake - deadline of executed ticks (p50/p99, ms),
 missed deadlines (skipped ticks) and overruns per 1,000 ticks.
@@ -16,6 +22,7 @@ missed deadlines (skipped ticks) and overruns per 1,000 ticks.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -114,6 +121,35 @@ def over_sockets(policy: str, goals, seed: int, faults: str, egm_hz: float, timi
     return summary
 
 
+@contextlib.contextmanager
+def late_gantry(late_s: float, lead_s: float):
+    """While open, deploy.sim.station's SimStation sets the gantry's part of every whole command
+    late_s (s) after the arm's, the gantry's target first led by lead_s (s) through the cell's
+    GantryLead (the contract's limits): the in-process image of a slow gantry link."""
+    from deploy.robot.drivers.lead import GantryLead
+    from deploy.robot.safety import limits_from_contract, part_limits
+    from deploy.sim import station as st
+    base = st.SimStation
+
+    class LateGantry(base):
+        def __init__(self, cfg, contract=None, *args, **kw):
+            super().__init__(cfg, contract, *args, **kw)
+            self.lead = GantryLead(part_limits(limits_from_contract(contract), slice(0, 2)))
+
+        def set_target(self, q, now, part=None):
+            if part is not None:
+                return super().set_target(q, now, part)
+            q = np.asarray(q, np.float64)
+            super().set_target(q[2:8], now, "arm")
+            super().set_target(self.lead.target(q[0:2], now, lead_s), now + late_s, "gantry")
+
+    st.SimStation = LateGantry      # run_sim builds its station by this name
+    try:
+        yield
+    finally:
+        st.SimStation = base
+
+
 def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("policy")
@@ -127,6 +163,10 @@ def main() -> None:
     p.add_argument("--realtime", action="store_true", help="in-process: on the real clock")
     p.add_argument("--action-delay-ms", type=float, default=None,
                    help="in-process: this action delay instead of the profile's (e.g. the measured transport)")
+    p.add_argument("--gantry-late-ms", type=float, default=None,
+                   help="in-process: the gantry's part of each command this much later than the arm's")
+    p.add_argument("--lead-ms", type=float, default=0.0,
+                   help="in-process, with --gantry-late-ms: the gantry's targets led by this much")
     p.add_argument("--runner-cpu", type=int, default=None, help="pin the runner (this process) to this core")
     p.add_argument("--server-cpu", type=int, default=None, help="pin `serve` to this core")
     p.add_argument("--no-lead", action="store_true",
@@ -146,8 +186,11 @@ def main() -> None:
         if a.action_delay_ms is not None:
             timing = dataclasses.replace(timing, action_delay_s=a.action_delay_ms / 1000.0)
         # a measurement at the named profile: played even outside the trained timing (reported)
-        out = run_sim(a.policy, goals, os.path.join(tmp, "episodes"), seed=a.seed, timing=timing,
-                      realtime=a.realtime, allow_untrained=True)
+        late = (late_gantry(a.gantry_late_ms / 1000.0, a.lead_ms / 1000.0) if a.gantry_late_ms is not None
+                else contextlib.nullcontext())
+        with late:
+            out = run_sim(a.policy, goals, os.path.join(tmp, "episodes"), seed=a.seed, timing=timing,
+                          realtime=a.realtime, allow_untrained=True)
         out["trained_timing"] = {k: out["timing"][k] for k in ("within_trained", "outside")}
         out["timing"] = tick_timing(os.path.join(tmp, "episodes"), len(goals))
     else:
@@ -155,7 +198,8 @@ def main() -> None:
     keep = ("episodes", "goals", "metrics", "faults", "driver_faults", "timing", "trained_timing", "transport", "overruns", "skipped",
             "mode", "latency_ms", "realtime_factor", "gantry")
     print(json.dumps({k: out.get(k) for k in keep} | {"faults_injected": a.faults, "seed": a.seed, "timing_profile": a.timing, "action_delay_ms": a.action_delay_ms, "out": tmp,
-                                                     "lead": None if a.inprocess else not a.no_lead,
+                                                     "lead": (not a.no_lead) if not a.inprocess else (
+                                                         None if a.gantry_late_ms is None else {"gantry_late_ms": a.gantry_late_ms, "lead_ms": a.lead_ms}),
                                                      "server": (out.get("server") or {}).get("counts")},
                      default=float))
 

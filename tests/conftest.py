@@ -149,6 +149,6 @@ def recorded_tiny_run(oracle_demos, tmp_path_factory):
         from recorded import tiny_recorded
         from training.trainer import Run
         cfg = tiny_recorded(oracle_demos, d)
-        return [str(d), Run(cfg, evaluate=training_evaluation(cfg), progress=False).run()]
+        return [str(d), Run(cfg, evaluation=training_evaluation, progress=False).run()]
     d, out = made_once(tmp_path_factory, "recorded_tiny_run", make)
     return Path(d), out

@@ -46,8 +46,9 @@ CROSS_CPU_LOSS_REL = 1e-3
 # landing, ttmjx.world.goals.landed_mean_distance): a run's rows are compared on the others.
 # Since then too: success by goal region and by ensemble member (the diagnostics of `ttmjx
 # report`), summaries of the same episodes that change no other number; and the loss on
-# held-out demonstrations (eval.heldout), a diagnostic that changes no other number either.
-ADDED_SINCE_THE_RECORDINGS = ("eval_mean_dist_landed",
+# held-out demonstrations (eval.heldout), a diagnostic that changes no other number either; and
+# the lane count of the program that trained the run (one seed is a batch of one since then).
+ADDED_SINCE_THE_RECORDINGS = ("eval_mean_dist_landed", "seeds_in_program",
                               *(f"{phase}_{part}_30cm" for phase in ("eval", "practice")
                                 for part in ("near", "middle", "far", "edges", "member0", "member1")),
                               "eval_heldout_loss", "eval_member0_heldout_loss", "eval_member1_heldout_loss")

@@ -59,7 +59,7 @@ def test_lfp_at_the_r02_updates_trains_as_many_updates_as_goalseye_at_r02():
 
 
 def test_the_ratio_sweep_changes_updates_per_trajectory_and_nothing_before_practice():
-    from training.trainer import pretrain_iterations
+    from training.schedule import pretrain_iterations
     base = ablate.full_base("sim")
     for variant, ratio in (("r0.05", 0.05), ("r0.2", 0.2), ("r1", 1.0)):
         cfg = ablate.variant_config("ratio", variant, "full", 0, "r", trajectories=120_000)
@@ -125,7 +125,7 @@ def test_tiny_demos_ablation_end_to_end_resumes_and_skips(tmp_path):
     argv = ["demos", "--scale", "tiny", "--seeds", "2", "--cells", "0:2", "--trajectories", "32", "--out", out]
     # A half-finished cell: d10-seed0 interrupted after its first iteration, as a killed call leaves it.
     half = ablate.plan("demos", "tiny", 2, out, "1", trajectories=32)[0]
-    Run(half.config, evaluate=training_evaluation(half.config), progress=False).run(max_iterations=1)
+    Run(half.config, evaluation=training_evaluation, progress=False).run(max_iterations=1)
 
     summary, text = ablate_cli(*argv, "--json")
     assert "resuming " + half.run_dir in text

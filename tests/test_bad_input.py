@@ -852,14 +852,14 @@ def test_a_corrupt_demos_file_in_a_resumed_run_is_refused_naming_it(recorded_tin
     (demos / "trajectories.npz").write_bytes((demos / "trajectories.npz").read_bytes()[:1000])
     cfg = dataclasses.replace(cfg, demo_dir=None, run_dir=str(run_dir))
     before = listing(run_dir)
-    from training.trainer import DamagedRun
+    from training.rundir import DamagedRun
     with pytest.raises(DamagedRun, match=str(demos / "trajectories.npz") + ": truncated or corrupt"):
-        Run(cfg, progress=False).check_demos()
+        Run(cfg, progress=False).runs[0].check_demos()
     assert listing(run_dir) == before
     from ttmjx.commandline import run as run_command, Command
     err = io.StringIO()
     with contextlib.redirect_stderr(err), pytest.raises(SystemExit) as ex:
-        run_command({"train": Command(None, lambda a: Run(cfg, progress=False).check_demos(), "", parse=lambda r: None)},
+        run_command({"train": Command(None, lambda a: Run(cfg, progress=False).runs[0].check_demos(), "", parse=lambda r: None)},
                     ["train"])
     one_line_error(subprocess.CompletedProcess([], ex.value.code, "", err.getvalue()), 1, "ttmjx train: error:",
                    str(demos / "trajectories.npz"), "truncated or corrupt", "delete")

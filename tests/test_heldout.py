@@ -3,6 +3,7 @@ the same number for the same parameters, lower for a trained policy than for an 
 collected once per run (kept in the run directory), each lane of a batch on its own set, and
 drawn by `ttmjx report`; a run without demonstrations has none and the report says so."""
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -14,8 +15,7 @@ import pytest
 
 from eval.diagnostics import write_report
 from eval.evaluate import training_evaluation
-from eval.heldout import (HELDOUT_DEMOS, HELDOUT_DIR, HELDOUT_SEED_OFFSET, HeldOut, with_heldout_loss,
-                          with_heldout_loss_seeds)
+from eval.heldout import HELDOUT_DEMOS, HELDOUT_DIR, HELDOUT_SEED_OFFSET, HeldOut, with_heldout_loss
 from training import runconfig
 from training.checkpoint import load_checkpoint
 from training.trainer import Run
@@ -30,7 +30,7 @@ def run(oracle_demos, tmp_path_factory):
     held-out loss) and a practice round, so `ttmjx report` has a round to draw."""
     cfg = dataclasses.replace(runconfig.tiny(), demo_dir=oracle_demos, demo_source="oracle",
                               run_dir=str(tmp_path_factory.mktemp("heldout") / "run"))
-    Run(cfg, evaluate=training_evaluation(cfg, heldout=True), progress=False).run(max_iterations=3)
+    Run(cfg, evaluation=functools.partial(training_evaluation, heldout=True), progress=False).run(max_iterations=3)
     return cfg
 
 
@@ -88,7 +88,7 @@ def test_each_lane_of_a_batch_scores_its_own_heldout_set(run, tmp_path, monkeypa
     params = trained_params(run)
     lanes = jax.tree.map(lambda x: np.stack([x, x, x]), params)        # 2 runs and a padding lane
     inner = lambda p, backend, keys: [{"within_30cm": 0.5}] * 3       # noqa: E731
-    got = with_heldout_loss_seeds([run, other], inner)(lanes, None, None)
+    got = with_heldout_loss([run, other], inner)(lanes, None, None)
     assert len(got) == 2 and all(g["within_30cm"] == 0.5 for g in got)
     no_collecting(monkeypatch)                      # both sets are on disk now, each in its run
     one = jax.tree.map(lambda x: x[None], params)
@@ -116,7 +116,7 @@ def test_the_report_draws_the_heldout_loss(run, tmp_path):
 def test_a_run_without_demonstrations_has_none_and_the_report_says_so(run, tmp_path):
     gcsl = dataclasses.replace(run, demos=0, pretrain_steps=0, demo_dir=None)
     inner = lambda *a: {"within_30cm": 0.5}      # noqa: E731
-    assert with_heldout_loss(gcsl, inner) is inner and with_heldout_loss_seeds([gcsl, gcsl], inner) is inner
+    assert with_heldout_loss([gcsl], inner) is inner and with_heldout_loss([gcsl, gcsl], inner) is inner
     # the report of such a run (its rows without the loss) says why, and draws the rest
     for demos_, why in ((0, "no demonstrations"), (run.demos, "not in the run's metrics")):
         d = tmp_path / f"run{demos_}"
@@ -132,14 +132,14 @@ def test_a_run_without_demonstrations_has_none_and_the_report_says_so(run, tmp_p
 
 @pytest.mark.slow      # ~35 s: the lanes' program; the fast set checks the lanes with a stand-in evaluation
 def test_a_batch_of_seeds_logs_each_seeds_loss_on_its_own_set(oracle_demos, tmp_path):
-    """`ttmjx train --seeds 2`'s evaluation (training_evaluation_seeds with the lanes' configs):
+    """`ttmjx train --seeds 2`'s evaluation (training_evaluation with the lanes' configs):
     each seed's logged loss is that of its own checkpoint on its own held-out set, in its directory."""
-    from eval.evaluate import training_evaluation_seeds
-    from training.seeds import SeedRuns, seed_configs
+    from eval.evaluate import training_evaluation
+    from training.seeds import seed_configs
     base = dataclasses.replace(runconfig.tiny(), demo_dir=oracle_demos, demo_source="oracle",
                                run_dir=str(tmp_path / "batch"))
     cfgs = seed_configs(base, 2)
-    SeedRuns(cfgs, training_evaluation_seeds(base, heldout=cfgs), progress=False,
+    Run(cfgs, functools.partial(training_evaluation, heldout=True), progress=False,
              parent=base.run_dir).run(max_iterations=2)           # the LFP evaluation ends the pretraining
     logged = []
     for c in cfgs:

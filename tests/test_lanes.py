@@ -12,10 +12,10 @@ import jax
 import numpy as np
 import pytest
 
-from eval.evaluate import training_evaluation, training_evaluation_seeds
+from eval.evaluate import training_evaluation
 from training import checkpoint, mesh, runconfig
 from training.runconfig import from_json, to_json
-from training.seeds import SeedRuns, check_one_batch, program_key
+from training.seeds import check_one_batch, program_key
 from training.trainer import Run
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -74,7 +74,7 @@ def one_program(oracle_demos, tmp_path_factory):
     """The three lanes trained together on one device for ITERATIONS iterations."""
     root = str(tmp_path_factory.mktemp("lanes"))
     cfgs = lane_configs(oracle_demos, root)
-    out = SeedRuns(cfgs, training_evaluation_seeds(cfgs[0]), progress=False).run(max_iterations=ITERATIONS)
+    out = Run(cfgs, training_evaluation, progress=False).run(max_iterations=ITERATIONS)
     assert out["iteration"] == ITERATIONS
     return oracle_demos, cfgs
 
@@ -99,7 +99,7 @@ def test_lane_k_is_that_arm_alone(one_program, tmp_path, lane):
     at b = 0 explores as a run without noise (whose policy has no noise at all)."""
     _, cfgs = one_program
     alone = dataclasses.replace(cfgs[lane], run_dir=str(tmp_path / "alone"))
-    Run(alone, evaluate=training_evaluation(alone), progress=False).run(max_iterations=ITERATIONS)
+    Run(alone, evaluation=training_evaluation, progress=False).run(max_iterations=ITERATIONS)
     assert_same_run(alone.run_dir, cfgs[lane].run_dir)
     phases = [r["phase"] for r in rows(cfgs[lane].run_dir)]
     assert phases == ["pretrain", "pretrain", "lfp" if lane == 1 else "practice"]
@@ -118,11 +118,11 @@ def test_lanes_over_four_devices_compute_what_one_device_does(one_program, tmp_p
     spread = [dataclasses.replace(c, run_dir=str(tmp_path / os.path.basename(c.run_dir)), devices=3) for c in cfgs]
     spec = tmp_path / "lanes.json"
     spec.write_text(json.dumps([to_json(c) for c in spread]))
-    script = ("import json, sys; from training.runconfig import from_json; from training.seeds import SeedRuns; "
-              "from eval.evaluate import training_evaluation_seeds; import jax; "
+    script = ("import json, sys; from training.runconfig import from_json; from training.trainer import Run; "
+              "from eval.evaluate import training_evaluation; import jax; "
               "assert jax.device_count() == 4, jax.devices(); "
               "cfgs = [from_json(d) for d in json.load(open(sys.argv[1]))]; "
-              "r = SeedRuns(cfgs, training_evaluation_seeds(cfgs[0]), progress=False); "
+              "r = Run(cfgs, training_evaluation, progress=False); "
               "assert (r.devices, r.lanes) == (3, 6), (r.devices, r.lanes); "
               f"r.run(max_iterations={ITERATIONS})")
     env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4", "JAX_PLATFORMS": "cpu"}

@@ -17,7 +17,7 @@ STOP_AFTER = 3        # iterations before the "kill": pretraining done, practice
 def trained(cfg, max_iterations=None) -> None:
     from eval.evaluate import training_evaluation
     from training.trainer import Run
-    Run(cfg, evaluate=training_evaluation(cfg), progress=False).run(max_iterations=max_iterations)
+    Run(cfg, evaluation=training_evaluation, progress=False).run(max_iterations=max_iterations)
 
 
 def state_leaves(run_dir: str) -> list:

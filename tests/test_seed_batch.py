@@ -8,7 +8,7 @@ import pytest
 
 from eval import evaluate as evaluation
 from eval.seed_batch import evaluate_seeds
-from training.trainer import SEEDS_FILE
+from training.rundir import SEEDS_FILE
 
 
 def test_every_seed_then_the_spread(tmp_path, monkeypatch):

@@ -10,11 +10,11 @@ import jax
 import numpy as np
 import pytest
 
-from eval.evaluate import training_evaluation, training_evaluation_seeds
+from eval.evaluate import training_evaluation
 from models.normalizer import identity_normalizer
 from models.policy import init_ensemble, make_policy
 from training import budget, checkpoint, runconfig
-from training.seeds import SeedRuns, check_one_batch, pick_seed, seed_configs, seed_run_dirs
+from training.seeds import check_one_batch, pick_seed, seed_configs, seed_run_dirs
 from training.trainer import Run
 from ttmjx.world import thrower
 from ttmjx.world.backends import Backend
@@ -66,7 +66,7 @@ def test_seed_k_of_a_batch_is_seed_k_alone(demo_dir, tmp_path, capsys):
     base = tiny(demo_dir, tmp_path / "batch")
     cfgs = seed_configs(base, 2)
     assert [c.seed for c in cfgs] == [0, 1] and cfgs[1].run_dir == os.path.join(str(tmp_path / "batch"), "seed1")
-    out = SeedRuns(cfgs, training_evaluation_seeds(base), progress=False, parent=base.run_dir).run(max_iterations=3)
+    out = Run(cfgs, training_evaluation, progress=False, parent=base.run_dir).run(max_iterations=3)
     assert out["iteration"] == 3 and out["seeds"] == [0, 1]
     # seeds.json as docs/DATA.md says: the seeds in order and each one's run directory, relative
     seeds_json = json.load(open(os.path.join(base.run_dir, "seeds.json")))
@@ -75,7 +75,7 @@ def test_seed_k_of_a_batch_is_seed_k_alone(demo_dir, tmp_path, capsys):
         assert json.load(open(os.path.join(base.run_dir, d, "config.json")))["seed"] == s
     assert seed_run_dirs(base.run_dir) == [c.run_dir for c in cfgs]
     alone_cfg = dataclasses.replace(base, seed=1, run_dir=str(tmp_path / "alone1"))
-    Run(alone_cfg, evaluate=training_evaluation(alone_cfg), progress=False).run(max_iterations=3)
+    Run(alone_cfg, evaluation=training_evaluation, progress=False).run(max_iterations=3)
     batched, alone = rows(cfgs[1].run_dir), rows(alone_cfg.run_dir)
     assert [r["phase"] for r in alone] == ["pretrain", "pretrain", "practice"]
     assert "eval_within_30cm" in alone[1] and "practice_kept" in alone[2]
@@ -108,10 +108,10 @@ def test_seed_k_of_a_batch_is_seed_k_alone(demo_dir, tmp_path, capsys):
     assert one["within_30cm"] == out["runs"][1]["eval_within_30cm"]
 
     # a crash between the seeds' saves: seed 0 one iteration ahead; the batch goes back to 3
-    ahead = Run(cfgs[0], evaluate=None, progress=False)
+    ahead = Run(cfgs[0], progress=False)
     ahead.run(max_iterations=1)
     assert rows(cfgs[0].run_dir)[-1]["iteration"] == 3
-    ck = SeedRuns(cfgs, None, progress=False).start()
+    ck = Run(cfgs, None, progress=False).start()
     assert np.asarray(ck.counters.iteration).tolist() == [3, 3]
     assert [r["iteration"] for r in rows(cfgs[0].run_dir)] == [0, 1, 2]
 

@@ -17,7 +17,8 @@ from recorded import RECORDED_PRACTICE, assert_reproduces_a_recording, tiny_reco
 from eval.evaluate import evaluate_uniform, training_evaluation
 from training import checkpoint, runconfig
 from training.pool import load_logs
-from training.trainer import Run, is_eval_iteration, practice_iterations, pretrain_iterations, round_episodes
+from training.schedule import is_eval_iteration, practice_iterations, pretrain_iterations, round_episodes
+from training.trainer import Run
 from training.update import acting_params
 from ttmjx.world import record
 
@@ -44,7 +45,7 @@ def final_params(run_dir):
 
 def train(cfg):
     """A run as `ttmjx train` builds it: the evaluation is given by the eval layer."""
-    return Run(cfg, evaluate=training_evaluation(cfg), progress=False)
+    return Run(cfg, evaluation=training_evaluation, progress=False)
 
 
 def test_schedule_evaluates_lfp_point_and_end():
@@ -106,7 +107,7 @@ def test_tiny_training_learns_to_return_balls_above_its_start(trained, demo_dir,
     cfg = tiny(demo_dir, tmp_path / "start")
     run = Run(cfg, progress=False)
     n = 256
-    before = return_rate(run, run.initial().state.params, n)
+    before = return_rate(run, run.runs[0].initial().state.params, n)
     after = return_rate(run, acting_params(final_params(str(run_dir)).state), n)
     assert before <= 0.05, before
     assert binomial_tail(round(after * n), n, 0.05) < 1e-4, (before, after)

@@ -13,7 +13,7 @@ trainer:
 5. the final demonstrations: 3.6k episodes of that policy, goals uniform over the half, 4 of
    the 8 joints perturbed (ttmjx/tools/bootstrap.py plays it; demos source `paper`).
 
-Stages 3 and 4 are ONE `training.trainer.Run` (its checkpoints, metrics and resume): the
+Stages 3 and 4 are ONE run (`training.trainer.Run`, a batch of one lane: its checkpoints, metrics and resume): the
 stage-4 run is the stage-3 run resumed with a larger `total_trajectories`; the only piece
 replaced is where practice draws its goals (`GoalBoxPractice`, a `training.practice.Practice`
 whose goal draw is a box). Nothing here was tuned against a GoalsEye learning result: the
@@ -156,9 +156,7 @@ def whole_half(world: World) -> tuple:
 
 def practise(cfg: RunConfig, box, progress: bool, log) -> dict:
     """Run (or resume) the stage run to cfg.total_trajectories with practice goals in `box`."""
-    run = Run(cfg, evaluate=None, progress=progress, log=log)
-    run.practice = GoalBoxPractice(cfg.world, cfg.policy, cfg.train, run.backend, cfg.episodes_per_ssp,
-                                   cfg.steps_between_ssp, run.layout, box=box)
+    run = Run(cfg, None, progress=progress, log=log, practice=GoalBoxPractice, box=box)
     return run.run()
 
 

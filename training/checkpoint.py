@@ -29,7 +29,7 @@ import orbax.checkpoint as ocp
 from models.normalizer import identity_normalizer
 from models.policy import PolicyParams
 from training.cache import Cache, empty_cache
-from training.mesh import Layout, barrier, is_primary
+from training.mesh import Layout
 from training.runconfig import RunConfig, from_json
 from training.update import TrainState, acting_params, init_train_state, state_sharding
 from ttmjx.world import files
@@ -132,13 +132,27 @@ class _ReadOnlyNotices(logging.Filter):
         return not str(record.getMessage()).startswith(self.NOTICES)
 
 
+def _this_process_alone() -> dict:
+    """Orbax's processes for one run directory, with several processes: this one alone. A run is
+    one lane, and each process trains (and saves, and reads) its own lanes (training.trainer), so
+    no save waits for, or is sealed by, another process."""
+    if jax.process_count() == 1:
+        return {}
+    me = jax.process_index()
+    return {"multiprocessing_options": ocp.options.MultiprocessingOptions(
+        primary_host=me, active_processes={me}, barrier_sync_key_prefix=f"ttmjx_process{me}")}
+
+
 def _manager(directory: str, keep: int | None = None, read_only: bool = False) -> ocp.CheckpointManager:
     logger, quiet = logging.getLogger("absl"), _ReadOnlyNotices()
     if read_only:
         logger.addFilter(quiet)
+    alone = _this_process_alone()
+    if alone and not read_only:   # Orbax creates no directory for a subset of processes
+        os.makedirs(os.path.abspath(directory), exist_ok=True)
     try:
-        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=not read_only, read_only=read_only,
-                                               enable_async_checkpointing=False)
+        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=not read_only and not alone,
+                                               read_only=read_only, enable_async_checkpointing=False, **alone)
         return ocp.CheckpointManager(os.path.abspath(directory), options=options, item_names=("state", "config"))
     finally:
         logger.removeFilter(quiet)
@@ -157,8 +171,7 @@ def save(directory: str, step: int, tree, config: dict, keep: int = 3) -> None:
             mngr.save(int(step), args=ocp.args.Composite(state=ocp.args.StandardSave(_savable(tree)),
                                                           config=ocp.args.JsonSave({**config, "checkpoint_format": FORMAT})))
     step_dir = os.path.join(os.path.abspath(directory), str(int(step)))
-    if is_primary():   # Orbax wrote the step from every process; one of them seals it
-        files.write_json(os.path.join(step_dir, CHECKSUMS), files.tree_checksums(step_dir, exclude=(CHECKSUMS,)))
+    files.write_json(os.path.join(step_dir, CHECKSUMS), files.tree_checksums(step_dir, exclude=(CHECKSUMS,)))
 
 
 # Errors of the machine while Orbax (tensorstore) writes: a full disk, a file-size limit, a quota.
@@ -273,9 +286,8 @@ def discard(directory: str, damaged) -> None:
     """Delete the damaged checkpoints a resume skipped (the run redoes them under the same
     numbers)."""
     import shutil
-    for s in damaged if is_primary() else ():
+    for s in damaged:
         shutil.rmtree(os.path.join(os.path.abspath(directory), str(s)))
-    barrier("ttmjx_discard")   # no process reads the directory before they are gone
 
 
 def damage(directory: str, step: int) -> str | None:

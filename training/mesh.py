@@ -69,11 +69,11 @@ class Layout(NamedTuple):
         return tree if self.free else jax.lax.with_sharding_constraint(tree, self.throws)
 
     def put(self, tree, shardings):
-        """`tree` placed as `shardings` (a pytree prefix of it). With several processes every
-        process holds the same host value (same seed, same files) and builds only its own
-        shards from it: nothing crosses processes (device_put would all-gather the whole pool
-        to check that the processes agree)."""
-        if jax.process_count() == 1:
+        """`tree` placed as `shardings` (a pytree prefix of it). A mesh that spans several
+        processes (the within-run layout) gets every process's shards built from the same host
+        value (same seed, same files), so nothing crosses processes (device_put would all-gather
+        the whole pool to check that the processes agree)."""
+        if not self.mesh.is_multi_process:
             return jax.device_put(tree, shardings)
         host = jax.device_get(tree)
 
@@ -85,7 +85,7 @@ class Layout(NamedTuple):
     def local(self, tree):
         """The whole value of every array on this process's first device: for the parts that
         run on the host (MuJoCo C physics) and for evaluation."""
-        if jax.process_count() > 1:
+        if self.mesh.is_multi_process:
             from jax.experimental import multihost_utils
             tree = multihost_utils.process_allgather(tree, tiled=True)
         return jax.device_put(tree, jax.local_devices()[0])
@@ -170,6 +170,22 @@ def check_local_devices(devices: int | None) -> int:
     if devices is not None and devices > available:
         raise ValueError(f"--devices {devices} but only {available} {jax.default_backend()} device(s) are available")
     return available
+
+
+def process_lanes(lanes: int, processes: int | None = None, index: int | None = None) -> tuple[int, int]:
+    """[lo, hi): the block of `lanes` that this process trains (jax.process_index() of
+    jax.process_count(), or `index` of `processes`). Lanes share nothing, so each process trains
+    its block on its own devices and no array spans processes; the blocks are as even as the
+    counts allow (the first lanes % processes blocks one longer). ValueError when some process
+    would get no lane."""
+    processes = jax.process_count() if processes is None else processes
+    index = jax.process_index() if index is None else index
+    if lanes < processes:
+        raise ValueError(f"{lanes} lane(s) over {processes} processes: every process needs at least one lane "
+                         f"(train more seeds or arms, or start fewer processes)")
+    size, extra = divmod(lanes, processes)
+    lo = index * size + min(index, extra)
+    return lo, lo + size + (index < extra)
 
 
 def padded_lanes(lanes: int, devices: int) -> int:

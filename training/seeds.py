@@ -1,66 +1,31 @@
-"""Several runs trained as one program: a batch of lanes.
+"""A batch of runs as one program's lanes: which configurations can share a program, the seeds
+of `ttmjx train --seeds N`, and the helpers of the lane axis (stacking, one lane's slice, the
+spread over seeds). The loop that trains the lanes is training.trainer.Run.
 
-A run is a function of (config, key); L runs (lanes) that differ only in their seed, in the
-settings an ablation varies as data (LANE_KNOBS: practice on or off, learning rate, moving
-average, the practice noise's scale, the demonstrations' share of a batch; training.update.Knobs) and, with the same schedule, in the demonstrations they start
-from (`program_key`), stack every array of their state (weights, optimizer states, moving
-averages, caches, keys, counters) on a leading [L] axis, and each compiled piece of training
-(the practice round, the update loop, the throw sampler, the evaluation rollout) is the one-run
-piece vmapped over that axis (training.practice with `seeds`, Backend.rollout_seeds). So lane k
-of a batch is the same experiment as that run alone: the same demonstrations, throws, goals,
-initial weights and random draws (tests/test_seeds.py, tests/test_lanes.py compare them). A lane
-that does not practise plays each round and keeps nothing, so it trains as LFP's train-only
-rounds do.
-
-The lanes are laid over the devices (training.mesh.lane_layout: a `lane` mesh axis, every
-local device unless cfg.devices says fewer): each device computes a block of lanes (jit's
-partitioner splits the lane axis; training.practice.over_lanes), nothing passes between lanes,
-and a lane count that the devices do not divide is padded with
-copies of the last lane that are computed and never written.
-
-Each seed keeps its own run directory (config.json, metrics.jsonl, curves, Orbax checkpoints)
-written by the ordinary `Run` bookkeeping, so `ttmjx eval`, `ttmjx export` and a resume treat
-a seed's directory like any run's. The batch's directory holds them and `seeds.json`:
+A batch of seeds lives in one directory, each seed in its own run directory:
 
     RUN/seeds.json        {"seeds": [s0, s1, ...], "run_dirs": ["seed<s0>", ...]}
     RUN/seed<s>/          one run per seed
-
-An ensemble inside each lane is vmapped as usual.
 """
 from __future__ import annotations
 
 import dataclasses
 import json
 import os
-from concurrent.futures import ThreadPoolExecutor
-from typing import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from training import budget, mesh, pool, runlog
-from training.checkpoint import Checkpointed, Counters
-from training.practice import Practice, stats_row
+from training.rundir import SEEDS_FILE
 from training.runconfig import RunConfig, to_json
-from training.trainer import (SEEDS_FILE, NonFiniteError, Run, finite_flags, is_checkpoint_iteration,
-                              is_eval_iteration, phase, practice_iterations, pretrain_iterations, round_episodes,
-                              total_iterations, _now)
-from training.update import acting_params, lane_knobs
-from ttmjx.commandline import install_stop_signals, restore_signals
-from ttmjx.world import files
-from ttmjx.world.backends import Backend, resolve_backend
-
-# evaluate(params [S, ...], backend, keys [S]) -> [metrics per seed]: eval.evaluate.training_evaluation_seeds
-EvaluateSeeds = Callable[..., list]
+from training.schedule import practice_iterations, pretrain_iterations
 
 # Fields in which the runs of one batch may differ: they change the runs' data (keys, starting
 # pools), not the program that trains them. `demos` and `demo_source` only where every run has
 # demonstrations and the same schedule (`program_key`): the demonstrations ablation's arms.
 PER_SEED = ("seed", "run_dir", "devices")
 PER_RUN_DATA = ("demos", "demo_source", "demo_dir")
-# Lanes whose checkpoints are written at once (each save's compression is multi-threaded too).
-SAVE_THREADS = 8
 # Settings that are data of a lane (dotted config fields): the lanes of one program may differ in them.
 LANE_KNOBS = ("practice", "train.learning_rate", "train.ema_decay", "train.action_noise", "train.demo_fraction")
 
@@ -138,171 +103,6 @@ def _lane(x, s: int):
         if lo <= s < hi:
             return sh.data[s - lo]
     raise ValueError(f"lane {s} is on no local device (lane axis {x.shape[0]})")
-
-
-class SeedRuns:
-    """S runs of one program (differing in seed, run directory and the lane knobs) trained
-    together, over the lane layout's devices. `evaluate` (params [L], backend, keys [L]) ->
-    [metrics] is called at the evaluation iterations; None skips evaluation. `parent`
-    (optional): the batch's directory, where seeds.json is written."""
-
-    def __init__(self, cfgs: list[RunConfig], evaluate: EvaluateSeeds | None = None, progress: bool = True,
-                 log=print, parent: str | None = None):
-        check_one_batch(cfgs)
-        cfg = self.cfg = cfgs[0]
-        if jax.process_count() > 1:
-            raise ValueError("a batch of seeds runs in one process")
-        self.seeds, self.evaluate, self.progress, self.log, self.parent = len(cfgs), evaluate, progress, log, parent
-        self.layout = mesh.lane_layout(self.seeds, cfg.devices)
-        self.devices = self.layout.mesh.size
-        self.lanes = mesh.padded_lanes(self.seeds, self.devices)   # computed lanes, padding included
-        # refused with the estimate before anything is compiled: each device holds its block of lanes
-        budget.check_fits(cfg, seeds=self.lanes // self.devices, devices=self.devices)
-        self.backend = Backend(cfg.world, resolve_backend(cfg.backend))
-        # each lane's Run makes its own state on the device of its block, where `assemble` stacks
-        # the block, so the lanes are never gathered on one device (a resumed lane is read onto
-        # the first device, one at a time, then moved to its block's)
-        self.per_device = self.lanes // self.devices
-        self.runs = [Run(c, None, progress, log, shared=(self.backend, mesh.one_device(self.device_of(i))))
-                     for i, c in enumerate(cfgs)]
-        self.cfgs = cfgs + [cfgs[-1]] * (self.lanes - self.seeds)
-        self.knobs = lane_knobs([c.train for c in self.cfgs])
-        self.practice = Practice(cfg.world, cfg.policy, cfg.train, self.backend, cfg.episodes_per_ssp,
-                                 cfg.steps_between_ssp, self.layout, seeds=self.lanes,
-                                 lane_noise=any(c.train.action_noise > 0 for c in cfgs))
-        self._stop = 0
-
-    # -- state ----------------------------------------------------------------------------
-    def start(self) -> Checkpointed:
-        """Every seed fresh or resumed, stacked; seeds a crash left at different iterations are
-        taken back to the oldest one's."""
-        if self.parent:
-            os.makedirs(self.parent, exist_ok=True)
-            files.write_json(os.path.join(self.parent, SEEDS_FILE),
-                             {"seeds": [r.cfg.seed for r in self.runs],
-                              "run_dirs": [os.path.relpath(r.cfg.run_dir, self.parent) for r in self.runs]})
-        # the lanes that start afresh collect their demonstrations together, one rollout per chunk
-        pool.collect_for_lanes([r.cfg for r in self.runs], self.progress, self.place, self.devices)
-        cks = [r.start() for r in self.runs]
-        its = [int(c.counters.iteration) for c in cks]
-        low = min(its)
-        cks = [c if i == low else r.rewind(low) for r, c, i in zip(self.runs, cks, its)]
-        return self.assemble(cks)
-
-    def device_of(self, lane: int):
-        """The device that computes `lane` (lanes are laid in blocks of `per_device`)."""
-        return self.layout.mesh.devices.flat[lane // self.per_device]
-
-    def assemble(self, cks: list[Checkpointed]) -> Checkpointed:
-        """The lanes' states, each on its block's device, -> one stacked tree [L, ...] split over
-        the lane mesh (padded with copies of the last lane): each block is stacked on its own
-        device, so setting up many lanes never gathers them all on one."""
-        cks = cks + [cks[-1]] * (self.lanes - len(cks))
-        blocks = []
-        for d in range(self.devices):
-            dev = self.layout.mesh.devices.flat[d]
-            block = cks[d * self.per_device:(d + 1) * self.per_device]
-            blocks.append(stacked([jax.device_put(c, dev) for c in block]))
-        sharding = self.layout.sharding(mesh.LANE)
-        return jax.tree.map(lambda *xs: jax.make_array_from_single_device_arrays(
-            (self.lanes,) + xs[0].shape[1:], sharding, list(xs)), *blocks)
-
-    def place(self, tree):
-        """A stacked tree [L, ...] split over the lane layout's devices, a block of lanes each."""
-        return jax.device_put(tree, self.layout.sharding(mesh.LANE))
-
-    def save(self, ck: Checkpointed):
-        """Every lane's checkpoint in its own run directory, several at once: Orbax spends most
-        of a save compressing the pool on the host (a paper-sim pool is 2 GiB), which threads do
-        side by side."""
-        with ThreadPoolExecutor(min(self.seeds, SAVE_THREADS)) as ex:
-            list(ex.map(lambda s: self.runs[s].save(seed_slice(ck, s)), range(self.seeds)))
-
-    # -- one iteration ----------------------------------------------------------------------
-    def step(self, ck: Checkpointed, it: int) -> tuple[Checkpointed, list[dict]]:
-        """Iteration `it` of every lane -> (state, one metrics row per real lane). If any lane
-        practises, every lane plays the round; the others keep none of it (counted 0)."""
-        cfg, t0 = self.cfg, _now()
-        practising = [phase(c, it) == "practice" for c in self.cfgs]
-        base = np.asarray(ck.key)                                    # [L, 2], as each run's own key
-        fold = jax.vmap(jax.random.fold_in, in_axes=(0, None))
-        throws = self.practice.round_throws(base, it) if any(practising) else None
-        new_traj = np.array([round_episodes(c, it) for c in self.cfgs], np.int32)
-        state, cache, loss, stats = self.practice.iteration(ck.state, ck.cache, self.place(fold(base, it)), throws,
-                                                            new_traj, self.knobs)
-        self.check_finite(state, loss, it)
-        new_upd = cfg.steps_between_ssp if self.practice.train_loop else 0
-        c = ck.counters
-        counters = self.place(Counters(c.iteration + 1, c.trajectories + new_traj, c.updates + new_upd))
-        ck = Checkpointed(state, cache, ck.key, counters)
-        loss, sizes = np.asarray(loss), np.asarray(cache.size)
-        trajs, upds = np.asarray(counters.trajectories), np.asarray(counters.updates)
-        rows = [{"iteration": it, "phase": phase(self.cfgs[s], it), "trajectories": int(trajs[s]),
-                 "updates": int(upds[s]), "cache_size": int(sizes[s]), "loss": float(np.mean(loss[s])),
-                 "seconds": _now() - t0, "seeds_in_program": self.seeds} for s in range(self.seeds)]
-        if stats is not None:
-            host = {k: np.asarray(v) for k, v in stats._asdict().items()}
-            for s, row in enumerate(rows):
-                if practising[s]:
-                    row.update(stats_row({k: v[s] for k, v in host.items()}))
-        if self.evaluate is not None and is_eval_iteration(cfg, it):
-            metrics = self.evaluate(acting_params(state), self.backend, fold(base, 10**6 + it))[:self.seeds]
-            for row, m in zip(rows, metrics):
-                row.update({f"eval_{k}": v for k, v in m.items()})
-        return ck, rows
-
-    def check_finite(self, state, loss, it: int):
-        """NonFiniteError naming the seeds whose loss or parameters are not finite."""
-        ok = np.asarray(jax.vmap(finite_flags)(loss, state.params.net, state.ema.net))[:self.seeds]   # [S, 3]
-        bad = [f"seed {r.cfg.seed}" for r, fine in zip(self.runs, ok) if not fine.all()]
-        if bad:
-            raise NonFiniteError(f"iteration {it}: non-finite loss or parameters in {', '.join(bad)} (learning rate "
-                                 f"too high, or non-finite data?); stopped without saving: the last good checkpoints "
-                                 f"are iteration {self.runs[0].saved_at}")
-
-    # -- the loop ----------------------------------------------------------------------------
-    def run(self, max_iterations: int | None = None) -> dict:
-        """Train every seed to the end (or `max_iterations` more iterations) -> a summary with
-        each seed's `Run.run`-style result under "runs"."""
-        cfg = self.cfg
-        ck = self.start()
-        n_tot = total_iterations(cfg)
-        start = int(ck.counters.iteration[0])
-        stop_at = n_tot if max_iterations is None else min(n_tot, start + max_iterations)
-        total = sum(c.total_trajectories if c.practice else max(c.demos, 1) for c in (r.cfg for r in self.runs))
-        bar = runlog.progress_bar(total, int(np.sum(ck.counters.trajectories)), self.progress)
-        last: list[dict] = [{} for _ in self.runs]
-        install_stop_signals(self)
-        try:
-            for it in range(start, stop_at):
-                before = int(np.sum(ck.counters.trajectories))
-                ck, rows = self.step(ck, it)
-                for s, (r, row) in enumerate(zip(self.runs, rows)):
-                    r.metrics.write(row)
-                    if any(k.startswith("eval_") for k in row):
-                        last[s] = row
-                if is_checkpoint_iteration(cfg, it, stop_at) or self._stop:
-                    self.save(ck)
-                bar.update(int(np.sum(ck.counters.trajectories)) - before)
-                bar.set_postfix_str(runlog.postfix(mean_row(rows)))
-                if self._stop:
-                    self.log(f"[ttmjx] saved the checkpoints of {self.seeds} seeds at iteration {it + 1}")
-                    break
-        finally:
-            bar.close()
-            restore_signals(self)
-            for r in self.runs:
-                r.metrics.close()
-        for r in self.runs:
-            runlog.plot_curves(r.metrics.path, os.path.join(r.log_dir, "learning_curve.png"))
-        it = int(ck.counters.iteration[0])
-        runs = [{"run_dir": r.cfg.run_dir, "seed": r.cfg.seed, "iteration": it,
-                 "trajectories": int(ck.counters.trajectories[s]),
-                 **{k: v for k, v in last[s].items() if k.startswith("eval_")}} for s, r in enumerate(self.runs)]
-        return {"run_dir": self.parent or os.path.commonpath([r.cfg.run_dir for r in self.runs]),
-                "seeds": [r.cfg.seed for r in self.runs], "iteration": it,
-                "trajectories": int(np.max(ck.counters.trajectories)), "finished": it >= n_tot,
-                "stopped_by_signal": self._stop, **seed_spread(runs), "runs": runs}
 
 
 def mean_row(rows: list[dict]) -> dict:

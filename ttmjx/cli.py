@@ -541,24 +541,24 @@ def parse_baseline(argv: list[str]) -> BaselineArgs:
 
 
 def train(a: TrainArgs) -> None:
+    import functools
+
     from eval.evaluate import training_evaluation
     from training.pool import check_sources
+    from training.seeds import seed_configs
     from training.trainer import Run
     cfg = a.config
     check_sources(cfg)
-    if a.seeds > 1:
-        from eval.evaluate import training_evaluation_seeds
-        from training.seeds import SeedRuns, seed_configs
-        cfgs = seed_configs(cfg, a.seeds)
-        out = SeedRuns(cfgs, training_evaluation_seeds(cfg, heldout=cfgs), progress=not a.json,
-                       parent=cfg.run_dir).run(max_iterations=a.max_iterations)
+    # one seed is a batch of one lane; --seeds N trains seeds --seed .. --seed + N - 1 in one program
+    runs = cfg if a.seeds == 1 else seed_configs(cfg, a.seeds)
+    out = Run(runs, functools.partial(training_evaluation, heldout=True), progress=not a.json,
+              parent=None if a.seeds == 1 else cfg.run_dir).run(max_iterations=a.max_iterations)
+    if a.seeds == 1:
+        report(a, out, table(out))
+    else:
         lines = [f"seed {r['seed']}: " + table({k: v for k, v in r.items() if k.startswith("eval_")})
                  .replace("\n", ", ") for r in out["runs"]]
         report(a, out, table({k: v for k, v in out.items() if k != "runs"}) + "\n" + "\n".join(lines))
-    else:
-        out = Run(cfg, evaluate=training_evaluation(cfg, heldout=True),
-                  progress=not a.json).run(max_iterations=a.max_iterations)
-        report(a, out, table(out))
     if out["stopped_by_signal"]:
         sys.exit(commandline.signal_exit_code(out["stopped_by_signal"]))
 
