@@ -53,7 +53,7 @@ def pool_share(goals, landings, radius: float = 0.15) -> float:
 def practice(tcfg: TrainConfig, seeds: int | None = None) -> Practice:
     """A round of 8 goals on MuJoCo C, of one run or of `seeds` lanes."""
     return Practice(WORLD, PolicyConfig(), tcfg, Backend(WORLD, "c"), episodes=8, train_steps=0,
-                    layout=mesh.lane_layout(seeds) if seeds else None, seeds=seeds)
+                    layout=mesh.lane_layout(seeds or 1), seeds=seeds or 1)
 
 
 def practice_parts(tcfg: TrainConfig, seeds: int | None = None):
@@ -116,7 +116,7 @@ def played_goals(parts, cache, key, seeds: bool):
     """The goals [(L,) M, 2] practice_round hands the rollout (stopped there)."""
     def rollout(params, k, throws, goals):
         raise Played(goals)
-    parts = parts._replace(rollout=rollout, place=lambda tree: tree)
+    parts = parts._replace(rollout=rollout)
     with pytest.raises(Played) as e:
         practice_round(parts, SimpleNamespace(ema=None), cache, key, None, 8, TABLE, seeds=seeds)
     return np.asarray(e.value.args[0])

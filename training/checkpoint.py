@@ -29,9 +29,8 @@ import orbax.checkpoint as ocp
 from models.normalizer import identity_normalizer
 from models.policy import PolicyParams
 from training.cache import Cache, empty_cache
-from training.mesh import Layout
 from training.runconfig import RunConfig, from_json
-from training.update import TrainState, acting_params, init_train_state, state_sharding
+from training.update import TrainState, acting_params, init_train_state
 from ttmjx.world import files
 
 CHECKSUMS = "ttmjx_checksums.json"   # {file: sha256} of a step's files, written after Orbax commits it
@@ -65,13 +64,6 @@ class Loaded(NamedTuple):
     def params(self) -> PolicyParams:
         """The acting (moving-average) parameters; leaves [N, ...] over ensemble members."""
         return acting_params(self.ck.state)
-
-
-def sharding(layout: Layout) -> Checkpointed:
-    """Where a run's state lives on `layout` (a pytree prefix): the train state split over
-    members; the cache, key and counters replicated (training.mesh says why)."""
-    rep = layout.replicated
-    return Checkpointed(state_sharding(layout), rep, rep, rep)
 
 
 def zero_counters(trajectories: int = 0) -> Counters:

@@ -11,10 +11,9 @@ metric.
 as ONE jit-compiled function; on a CPU the rollouts step MuJoCo C on the host, so the same
 round runs eagerly around the compiled pieces (goals, append, the S updates).
 
-On a mesh of devices (training.mesh) the MJX round plays its M throws sharded over every device,
-each device the throws of the members it holds; the new episodes are gathered into the
-replicated cache, and the updates run as in training.update. On MuJoCo C the physics runs on
-the host and only the compiled pieces are sharded.
+`Practice` runs the round of L lanes (training.trainer): on MJX the one-run round vmapped over
+the lanes, each device playing its block of lanes whole (nothing passes between lanes); on
+MuJoCo C the compiled pieces vmapped over the lanes and one host rollout for every lane's throws.
 """
 from __future__ import annotations
 
@@ -31,9 +30,8 @@ from models.policy import (NoisyParams, make_policy, with_action_noise, with_int
 from training.cache import Cache, add_episodes
 from training.config import TrainConfig
 from training.frontier import with_frontier
-from training.mesh import LANE, Layout, single_device
-from training.update import (Knobs, TrainState, acting_params, knobs_of, lane_knobs, make_train_loop, state_sharding,
-                             train_loop_fn)
+from training.mesh import LANE, Layout, lane_layout
+from training.update import Knobs, TrainState, acting_params, lane_knobs, train_loop_fn
 from ttmjx.world import thrower
 from ttmjx.world.backends import Backend, backend_kind
 from ttmjx.world.config import Table, World
@@ -62,8 +60,7 @@ class RoundParts(NamedTuple):
     goals: Callable      # key -> [M, 2], the uniform draw
     rollout: Callable    # (params, key, throws [M], goals [M, 2]) -> Trajectories
     append: Callable     # (cache, traj, counted) -> cache
-    train: Callable      # (state, cache, key) -> (state, loss [N])
-    place: Callable      # tree [M, ...] -> the same, laid out over the devices that play it
+    train: Callable      # (state, cache, key, knobs) -> (state, loss [N])
     block: int = 0       # episodes each ensemble member plays (M / N; 0: one policy)
     noisy: bool = False  # the rollout policy reads its noise scale from NoisyParams (Knobs.action_noise)
     # (key, cache, goals [M, 2]) -> [M, 2]: a share of the drawn goals moved to the pool's
@@ -138,7 +135,7 @@ def practice_round(parts: RoundParts, state: TrainState, cache: Cache, key, thro
     goals = parts.goals(k_goal)
     if parts.frontier is not None:
         goals = parts.frontier(k_goal, cache, goals)
-    traj = parts.rollout(played, k_roll, parts.place(throws), parts.place(goals))
+    traj = parts.rollout(played, k_roll, throws, goals)
     new = parts.append(cache, traj, counted)
     members = traj.hit.shape[-1] // parts.block if parts.block else 1
     stats = over(lambda *a: practice_stats(*a, table, members))(jax.tree.map(jnp.asarray, traj), cache.count,
@@ -177,32 +174,28 @@ def over_lanes(fn, layout: Layout):
 
 
 class Practice:
-    """Practice rounds and train-only rounds of one configuration; the compiled functions are
+    """Practice rounds and train-only rounds of L lanes of one configuration (training.trainer:
+    one seed is a lane of one). Every state, cache, key and throw carries a leading [L] axis,
+    each compiled piece is the one-run piece vmapped over it, and the lane layout
+    (training.mesh.lane_layout) gives each device a block of lanes. The compiled functions are
     built once here (the jit boundaries of training) and reused every round."""
 
     def __init__(self, world: World, pcfg: PolicyConfig, tcfg: TrainConfig, backend: Backend,
-                 episodes: int, train_steps: int, layout: Layout | None = None, seeds: int | None = None,
+                 episodes: int, train_steps: int, layout: Layout | None = None, seeds: int = 1,
                  lane_noise: bool = False):
         if episodes % tcfg.members:
             raise ValueError(f"episodes_per_ssp={episodes} must be a multiple of members={tcfg.members} "
                              f"(every member practises an equal share)")
-        self.world, self.tcfg, self.backend, self.episodes = world, tcfg, backend, episodes
-        # lane_noise: lanes whose practice noise scale differs read it from their knobs
-        self.lane_noise = bool(seeds) and lane_noise
-        self.layout = layout or single_device()
-        # seeds=L: L independent runs (lanes) in one program; every state, cache, key and throw
-        # carries a leading [L] axis, each compiled piece is the one-run piece vmapped over it,
-        # and a lane layout (training.mesh.lane_layout) gives each device a block of lanes.
-        self.seeds = seeds
-        if seeds and not self.layout.free:
-            raise ValueError(f"{seeds} lanes in one program need a lane layout (training.mesh.lane_layout)")
+        self.world, self.tcfg, self.backend, self.episodes, self.seeds = world, tcfg, backend, episodes, seeds
+        self.layout = layout or lane_layout(seeds)
+        # lane_noise: the lanes' practice noise scale is read from their knobs (it may differ)
+        self.lane_noise = lane_noise
         self.train_loop, self._train_one = None, None
         if train_steps > 0:
-            self._train_one = train_loop_fn(pcfg, tcfg, train_steps, self.layout)   # one run, pure
-            self.train_loop = (self.lanes(over_seeds(self._train_one, backend.name)) if seeds
-                               else make_train_loop(pcfg, tcfg, train_steps, self.layout))
+            self._train_one = train_loop_fn(pcfg, tcfg, train_steps)   # one run, pure
+            self.train_loop = self.lanes(over_seeds(self._train_one, backend.name))
         sample = lambda k: thrower.sample_throws(k, world, THROW_BLOCK * episodes)  # noqa: E731
-        self._sample_throws = self.lanes(jax.vmap(sample)) if seeds else jax.jit(sample)
+        self._sample_throws = self.lanes(jax.vmap(sample))
         self._bank = (None, None)
         policy = practice_policy(pcfg, tcfg, self.lane_noise)
         pure = self._pure_parts(backend.rollout_fn(policy, members=tcfg.members)) if backend.kind.traceable else None
@@ -213,16 +206,13 @@ class Practice:
         return over_lanes(fn, self.layout)
 
     def _pure_parts(self, rollout) -> RoundParts:
-        """Practice goals beyond the table by practice_goal_margin, some at the pool's frontier by
-        practice_goals; kept episodes by practice_keep."""
+        """One run's round: practice goals beyond the table by practice_goal_margin, some at the
+        pool's frontier by practice_goals; kept episodes by practice_keep."""
         world, m, tcfg = self.world, self.episodes, self.tcfg
         goal_margin, keep_margin = tcfg.practice_goal_margin, tcfg.practice_keep_margin
-        # With seeds, the MJX round is vmapped whole: its parts are one run's (train_one, not the
-        # vmapped train_loop).
-        train = self.train if not self.seeds else self.train_one
         return RoundParts(goals=lambda k: uniform_goals(k, m, world.table, goal_margin), rollout=rollout,
-                          append=lambda c, t, n: add_episodes(c, t, world.table, keep_margin, counted=n), train=train,
-                          place=self.layout.constrain_throws, block=m // tcfg.members, noisy=self.lane_noise,
+                          append=lambda c, t, n: add_episodes(c, t, world.table, keep_margin, counted=n),
+                          train=self.train_one, block=m // tcfg.members, noisy=self.lane_noise,
                           frontier=self._frontier())
 
     def _frontier(self) -> Callable | None:
@@ -233,60 +223,44 @@ class Practice:
         return lambda k, c, g: with_frontier(k, c, g, tcfg.frontier_fraction, table, tcfg.practice_goal_margin)
 
     def _compiled_round(self, pure: RoundParts):
-        """MJX: the whole round in one jit. The throws, goals and episodes are split over the
-        devices (`place`); the state stays split over members, the cache and the stats replicated."""
-        lay = self.layout
-        parts = pure._replace(rollout=lambda *a: lay.constrain_throws(pure.rollout(*a)))
-        if self.seeds:   # lanes: each device plays its block of lanes whole
-            return self.lanes(jax.vmap(lambda s, c, k, th, n, kn: practice_round(parts, s, c, k, th, n,
-                                                                                 self.world.table, knobs=kn)))
-        out = (state_sharding(lay), lay.replicated, lay.replicated, lay.replicated)
-        return jax.jit(lambda *a: practice_round(parts, *a, self.world.table), out_shardings=out)
+        """MJX: the whole round of one run vmapped over the lanes, in one jit; each device plays
+        its block of lanes whole."""
+        return self.lanes(jax.vmap(lambda s, c, k, th, n, kn: practice_round(pure, s, c, k, th, n, self.world.table,
+                                                                             knobs=kn)))
 
     def _host_round(self, policy):
-        """MuJoCo C: the round runs on the host around compiled goals, append and updates; the
-        host physics plays every throw, with the whole parameters on this process's device."""
-        backend, members, lay = self.backend, self.tcfg.members, self.layout
+        """MuJoCo C: the round runs on the host around its compiled pieces (goals, append and
+        updates, each over the lanes); the host physics plays every lane's throws in one rollout."""
+        backend, members = self.backend, self.tcfg.members
         pure = self._pure_parts(None)
-        if self.seeds:
-            parts = pure._replace(
-                goals=self.lanes(jax.vmap(pure.goals)), append=self.lanes(jax.vmap(pure.append)), train=self.train,
-                frontier=pure.frontier and self.lanes(jax.vmap(pure.frontier)),
-                rollout=lambda p, k, th, g: backend.rollout_seeds(policy, p, k, th, g, members=members),
-                place=lambda tree: tree)
-            return lambda s, c, k, th, n, kn: practice_round(parts, s, c, k, th, n, self.world.table, seeds=True,
-                                                             knobs=kn)
         parts = pure._replace(
-            goals=jax.jit(pure.goals), append=jax.jit(pure.append, out_shardings=lay.replicated),
-            frontier=pure.frontier and jax.jit(pure.frontier),
-            rollout=lambda p, k, th, g: backend.rollout(policy, lay.local(p), k, th, g, members=members),
-            place=lambda tree: tree)
-        return lambda *a: practice_round(parts, *a, self.world.table)
+            goals=self.lanes(jax.vmap(pure.goals)), append=self.lanes(jax.vmap(pure.append)), train=self.train,
+            frontier=pure.frontier and self.lanes(jax.vmap(pure.frontier)),
+            rollout=lambda p, k, th, g: backend.rollout_seeds(policy, p, k, th, g, members=members))
+        return lambda s, c, k, th, n, kn: practice_round(parts, s, c, k, th, n, self.world.table, seeds=True,
+                                                         knobs=kn)
 
     def round_throws(self, base_key, it: int) -> thrower.Throw:
-        """The M throws [M, ...] of practice round `it`, a function of (base_key, it) only (so a
-        resumed run replays them), drawn THROW_BLOCK rounds at a time."""
+        """The M throws [L, M, ...] of practice round `it` per lane, a function of (base_key [L],
+        it) only (so a resumed run replays them), drawn THROW_BLOCK rounds at a time."""
         block, i = divmod(int(it), THROW_BLOCK)
         if self._bank[0] != block:
-            fold = jax.vmap(jax.random.fold_in, in_axes=(0, None)) if self.seeds else jax.random.fold_in
+            fold = jax.vmap(jax.random.fold_in, in_axes=(0, None))
             k = fold(fold(np.asarray(base_key), THROW_STREAM), block)
             self._bank = (block, self._sample_throws(k))
         m = self.episodes
-        return jax.tree.map(lambda x: x[..., i * m:(i + 1) * m, :], self._bank[1])   # [(S,) M, 3 or 2]
+        return jax.tree.map(lambda x: x[..., i * m:(i + 1) * m, :], self._bank[1])   # [L, M, 3 or 2]
 
     def train(self, state: TrainState, cache: Cache, key, knobs: Knobs | None = None):
-        """S training steps -> (state, mean loss per member [N]); with lanes, knobs [L] (Knobs)
-        and every result [L, ...]."""
+        """S training steps of every lane -> (state, mean loss per member [L, N]); knobs [L]
+        (Knobs), None: the config's."""
         if self.train_loop is None:
-            return state, jnp.zeros((self.seeds, self.tcfg.members) if self.seeds else self.tcfg.members)
-        if self.seeds:
-            state, loss = self.train_loop(state, cache, key, self.knobs if knobs is None else knobs)
-        else:
-            state, loss = self.train_loop(state, cache, key)
-        return state, loss.mean(-2)   # over the steps: [N], or [L, N] over lanes
+            return state, jnp.zeros((self.seeds, self.tcfg.members))
+        state, loss = self.train_loop(state, cache, key, self.knobs if knobs is None else knobs)
+        return state, loss.mean(-2)   # over the steps
 
     def train_one(self, state: TrainState, cache: Cache, key, knobs: Knobs | None = None):
-        """`train` of one lane, uncompiled (inside the vmapped round of several lanes)."""
+        """`train` of one lane, uncompiled (inside the vmapped round of the lanes)."""
         if self._train_one is None:
             return state, jnp.zeros(self.tcfg.members)
         state, loss = self._train_one(state, cache, key, knobs)
@@ -294,22 +268,21 @@ class Practice:
 
     @property
     def knobs(self) -> Knobs:
-        """Every lane's knobs as this Practice's config has them ([L] arrays with lanes)."""
-        return lane_knobs([self.tcfg] * self.seeds) if self.seeds else knobs_of(self.tcfg)
+        """Every lane's knobs as this Practice's config has them ([L] arrays)."""
+        return lane_knobs([self.tcfg] * self.seeds)
 
     def iteration(self, state: TrainState, cache: Cache, key, throws: thrower.Throw | None = None,
                   counted=None, knobs: Knobs | None = None):
-        """One iteration -> (state, cache, loss [N], PracticeStats or None). With `throws` [M]
-        (`round_throws`) a practice round, of which the first `counted` episodes (None: all M)
-        join the pool; without, S updates only (pretraining, LFP). With lanes, every argument and
-        result has a leading [L] axis, `counted` is one count or [L] (0 for a lane that does not
-        practise: it plays the round and keeps nothing, so it trains exactly as a train-only
-        round), and `knobs` [L] are the lanes' settings (None: the config's)."""
+        """One iteration of every lane -> (state, cache, loss [L, N], PracticeStats [L] or None);
+        every argument and result has the leading [L] axis. With `throws` [L, M] (`round_throws`)
+        a practice round, of which the first `counted` episodes (one count or [L]; None: all M)
+        join each pool; 0 for a lane that does not practise: it plays the round and keeps nothing,
+        so it trains exactly as a train-only round. Without, S updates only (pretraining, LFP).
+        `knobs` [L] are the lanes' settings (None: the config's)."""
+        knobs = self.knobs if knobs is None else knobs
         if throws is not None:
             n = self.episodes if counted is None else counted
-            if not self.seeds:
-                return self._round(state, cache, key, throws, jnp.int32(n))
             n = jnp.asarray(np.broadcast_to(np.asarray(n, np.int32), (self.seeds,)))
-            return self._round(state, cache, key, throws, n, self.knobs if knobs is None else knobs)
-        state, loss = self.train(state, cache, (jax.vmap(round_keys) if self.seeds else round_keys)(key)[2], knobs)
+            return self._round(state, cache, key, throws, n, knobs)
+        state, loss = self.train(state, cache, jax.vmap(round_keys)(key)[2], knobs)
         return state, cache, loss, None

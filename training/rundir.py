@@ -15,7 +15,7 @@ import sys
 
 import jax
 
-from training import checkpoint, mesh, pool, runlog
+from training import checkpoint, pool, runlog
 from training.checkpoint import Checkpointed
 from training.runconfig import BOOKKEEPING, RunConfig, from_json, to_json
 from training.update import init_train_state
@@ -72,7 +72,7 @@ class RunDir:
 
     def __init__(self, cfg: RunConfig, backend: Backend, device=None, progress: bool = True, log=print):
         self.cfg, self.backend, self.progress, self.log = cfg, backend, progress, log
-        self.layout = mesh.one_device(device if device is not None else jax.local_devices()[0])
+        self.device = device if device is not None else jax.local_devices()[0]   # where its state is built
         self.ckpt_dir = os.path.join(cfg.run_dir, "checkpoints")
         self.log_dir = cfg.run_dir
         self.metrics = runlog.MetricsLog(self.log_dir)
@@ -91,8 +91,8 @@ class RunDir:
         return self.place(Checkpointed(state, cache, key, checkpoint.zero_counters(seen)))
 
     def place(self, ck: Checkpointed) -> Checkpointed:
-        """`ck` on this run's devices (checkpoint.sharding)."""
-        return self.layout.put(ck, checkpoint.sharding(self.layout))
+        """`ck` on this run's device (a resumed state is read onto the first one)."""
+        return jax.device_put(ck, self.device)
 
     def absorb_logs(self, ck: Checkpointed) -> Checkpointed:
         """Robot practice closes the loop: relabel the logs in cfg.data, append them to the
@@ -110,7 +110,7 @@ class RunDir:
         self.log(f"[ttmjx] added {int(cache.count - ck.cache.count)} of {logs.size} logged episodes "
                  f"from {', '.join(new)} to the cache")
         self._absorbed += [os.path.abspath(d) for d in new]
-        return ck._replace(cache=self.layout.put(cache, self.layout.replicated), counters=ck.counters._replace(
+        return ck._replace(cache=jax.device_put(cache, self.device), counters=ck.counters._replace(
             trajectories=ck.counters.trajectories + logs.size))
 
     # -- checkpoints -------------------------------------------------------------------------

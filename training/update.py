@@ -1,9 +1,8 @@
 """Optimizer updates of a whole ensemble in one jit-compiled, vmapped step.
 
 Every member samples its own windows from the one shared cache (its own key) and takes its
-own Adam step; no Python loop over members. On a mesh (training.mesh) the members are split
-over the `member` axis and each member's windows over `batch`; the cache is replicated, so
-sampling reads only the device's own copy.
+own Adam step; no Python loop over members. These are one run's functions: the trainer vmaps
+them over its lanes (training.practice), and each device computes the lanes of its block.
 """
 from __future__ import annotations
 
@@ -20,7 +19,6 @@ from models.policy import PolicyParams, ensemble_size, init_ensemble
 from training.cache import Cache
 from training.config import TrainConfig
 from training.loss import policy_loss
-from training.mesh import Layout, single_device
 from training.sampler import sample_subsequences
 
 
@@ -88,67 +86,44 @@ def init_train_state(key, pcfg: PolicyConfig, tcfg: TrainConfig, norm: Normalize
     return TrainState(params, jax.vmap(optimizer(tcfg).init)(params.net), jnp.int32(0), params)
 
 
-def state_sharding(layout: Layout) -> TrainState:
-    """Where a TrainState lives (a pytree prefix): the [N, ...] leaves split over members, the
-    step replicated."""
-    return TrainState(layout.members, layout.members, layout.replicated, layout.members)
-
-
 def member_update(pcfg: PolicyConfig, tcfg: TrainConfig, params: PolicyParams, opt_state, cache: Cache, key,
-                  place=lambda batch: batch, learning_rate=None, demo_fraction=None):
+                  learning_rate=None, demo_fraction=None):
     """One member: sample a batch, one optimizer step -> (params, opt_state, loss []).
-    `place` puts the sampled windows [B, ...] where they are computed on (Layout.constrain_batch);
     learning_rate, demo_fraction: a lane's (Knobs), None: the config's."""
     f = tcfg.demo_fraction if demo_fraction is None else demo_fraction
-    batch = place(sample_subsequences(key, cache, tcfg.window, tcfg.batch_size,
-                                      pcfg.input_frames, pcfg.obs_size, f, tcfg.balance))
+    batch = sample_subsequences(key, cache, tcfg.window, tcfg.batch_size, pcfg.input_frames, pcfg.obs_size, f,
+                                tcfg.balance)
     loss, grads = jax.value_and_grad(
         lambda net: policy_loss(pcfg, params._replace(net=net), batch))(params.net)
     updates, opt_state = optimizer(tcfg, learning_rate).update(grads, opt_state, params.net)
     return params._replace(net=optax.apply_updates(params.net, updates)), opt_state, loss
 
 
-def _ensemble_update(pcfg, tcfg, layout: Layout, state: TrainState, cache: Cache, key, knobs: Knobs | None = None):
+def _ensemble_update(pcfg, tcfg, state: TrainState, cache: Cache, key, knobs: Knobs | None = None):
     kn = knobs_of(tcfg) if knobs is None else knobs
     keys = jax.random.split(key, ensemble_size(state.params))
-    # spmd_axis_name: the vmapped member axis is the mesh's `member` axis, so the per-member
-    # constraint on the windows' [B] axis becomes [N over member, B over batch].
-    update = jax.vmap(lambda p, o, k: member_update(pcfg, tcfg, p, o, cache, k, layout.constrain_batch,
-                                                    kn.learning_rate, kn.demo_fraction),
-                      spmd_axis_name=layout.member_axis)
+    update = jax.vmap(lambda p, o, k: member_update(pcfg, tcfg, p, o, cache, k, kn.learning_rate, kn.demo_fraction))
     params, opt_state, loss = update(state.params, state.opt_state, keys)
     ema = updated_ema(kn.ema_decay, state.ema, params, kn.ema_rate)
     return TrainState(params, opt_state, state.step + 1, ema), loss
 
 
-def _compiled(layout: Layout, fn):
-    """jit of fn(state, cache, key) -> (state, loss), the state kept on its devices and the loss
-    (a few numbers) replicated so every process can read it."""
-    return jax.jit(fn, out_shardings=(state_sharding(layout), layout.replicated))
+def make_train_step(pcfg: PolicyConfig, tcfg: TrainConfig):
+    """jit-compiled `train_step(state, cache, key) -> (state, loss [N])`: one update per member."""
+    return jax.jit(lambda state, cache, key: _ensemble_update(pcfg, tcfg, state, cache, key))
 
 
-def make_train_step(pcfg: PolicyConfig, tcfg: TrainConfig, layout: Layout | None = None):
-    """jit-compiled `train_step(state, cache, key) -> (state, loss [N])`: one update per member,
-    on `layout`'s devices (default: one device)."""
-    layout = layout or single_device()
-    return _compiled(layout, lambda state, cache, key: _ensemble_update(pcfg, tcfg, layout, state, cache, key))
-
-
-def train_loop_fn(pcfg: PolicyConfig, tcfg: TrainConfig, num_steps: int, layout: Layout | None = None):
+def train_loop_fn(pcfg: PolicyConfig, tcfg: TrainConfig, num_steps: int):
     """The pure `train_loop(state, cache, key, knobs=None) -> (state, loss [num_steps, N])`:
-    `num_steps` updates as one scan (to compile alone, vmapped over lanes, or inside a practice
+    `num_steps` updates as one scan (vmapped over lanes by the trainer, or inside a practice
     round); `knobs` (Knobs) a lane's settings, None: the config's."""
-    layout = layout or single_device()
-
     def loop(state, cache, key, knobs=None):
-        body = lambda s, k: _ensemble_update(pcfg, tcfg, layout, s, cache, k, knobs)  # noqa: E731
+        body = lambda s, k: _ensemble_update(pcfg, tcfg, s, cache, k, knobs)  # noqa: E731
         return jax.lax.scan(body, state, jax.random.split(key, num_steps))
     return loop
 
 
-def make_train_loop(pcfg: PolicyConfig, tcfg: TrainConfig, num_steps: int, layout: Layout | None = None):
+def make_train_loop(pcfg: PolicyConfig, tcfg: TrainConfig, num_steps: int):
     """jit-compiled `train_loop(state, cache, key) -> (state, loss [num_steps, N])`: `num_steps`
-    updates in one call (a scan), for the updates between two practice rounds; on `layout`'s
-    devices (default: one device)."""
-    layout = layout or single_device()
-    return _compiled(layout, train_loop_fn(pcfg, tcfg, num_steps, layout))
+    updates of one run in one call (a scan)."""
+    return jax.jit(train_loop_fn(pcfg, tcfg, num_steps))

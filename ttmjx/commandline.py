@@ -229,7 +229,7 @@ def command_of(commands: dict, argv: list[str]) -> tuple[str, list[str]]:
 # Signals: the one home of both ways a command stops on SIGINT (Ctrl-C) or SIGTERM
 #   - anywhere in a command, the signal unwinds it: Ctrl-C raises KeyboardInterrupt (Python's
 #     own), SIGTERM raises Stopped (stop_on_sigterm); `run` ends both as one line, 130 / 143;
-#   - inside a training loop (training/trainer.py Run, training/seeds.py SeedRuns), where an
+#   - inside the training loop (training/trainer.py Run), where an
 #     exception would lose the iteration and could cut a checkpoint in half, the signal only asks
 #     the loop to stop (install_stop_signals): it finishes the iteration, saves, and returns the
 #     signal as `stopped_by_signal`, which the command exits with (signal_exit_code).

@@ -28,7 +28,7 @@ p.add_argument("--n", type=int, default=1024)
 a = p.parse_args()
 cfg = tiny_recorded(a.demo_dir, "/tmp/tiny_return_rate_start")
 run = Run(cfg, progress=False)
-for name, params in (("untrained", run.initial().state.params),
+for name, params in (("untrained", run.runs[0].initial().state.params),
                      ("trained", acting_params(checkpoint.load_checkpoint(a.run_dir).ck.state))):
     goals = np.asarray(uniform_goals(jax.random.PRNGKey(31), a.n, cfg.world.table))
     tr = rollout_goals(cfg.world, cfg.policy, params, run.backend, jax.random.PRNGKey(32), goals,
