@@ -1,13 +1,12 @@
 """Lanes over several processes on one host (docs/SCALING.md): four `tiny` seeds trained by 2
-processes of 2 simulated CPU devices each (jax.distributed through JAX_COORDINATOR_ADDRESS,
-JAX_NUM_PROCESSES, JAX_PROCESS_ID; each process trains its block of two lanes) end where the same
-four seeds trained by one process over 4 devices end: every lane's log and weights. Each run is a
+processes of 2 simulated CPU devices each (the launcher's JAX_NUM_PROCESSES and JAX_PROCESS_ID;
+each process trains its block of two lanes) end where the same four seeds trained by one process
+over 4 devices end: every lane's log and weights. Each run is a
 fresh interpreter (XLA's device count is fixed when JAX starts): this file run as a script with
 --child."""
 import dataclasses
 import json
 import os
-import socket
 import subprocess
 import sys
 
@@ -18,19 +17,13 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SEEDS, ITERATIONS = 4, 4   # tiny: two pretraining chunks, then two practice rounds
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("localhost", 0))
-        return s.getsockname()[1]
-
-
 def launch(run_dir: str, demo_dir: str, processes: int, local_devices: int) -> list[str]:
     """`processes` processes of `local_devices` devices each train SEEDS tiny seeds into run_dir;
     a failed one fails the test with its output's tail. Returns every process's output."""
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=ROOT,
                XLA_FLAGS=f"--xla_force_host_platform_device_count={local_devices}")
     if processes > 1:
-        env.update(JAX_COORDINATOR_ADDRESS=f"localhost:{free_port()}", JAX_NUM_PROCESSES=str(processes))
+        env.update(JAX_NUM_PROCESSES=str(processes))
     procs = [subprocess.Popen([sys.executable, __file__, "--child", run_dir, demo_dir],
                               env=dict(env, JAX_PROCESS_ID=str(i)), stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True) for i in range(processes)]
@@ -80,9 +73,9 @@ def test_lanes_over_two_processes_train_as_one_process_with_their_devices(oracle
 
 def child(run_dir: str, demo_dir: str) -> None:
     """One process of the batch (the environment says which): `ttmjx train --seeds 4` in-process."""
-    from training import mesh, runconfig
-    mesh.initialize_distributed()
     import functools
+
+    from training import runconfig
 
     from eval.evaluate import training_evaluation
     from training.seeds import seed_configs

@@ -124,27 +124,13 @@ class _ReadOnlyNotices(logging.Filter):
         return not str(record.getMessage()).startswith(self.NOTICES)
 
 
-def _this_process_alone() -> dict:
-    """Orbax's processes for one run directory, with several processes: this one alone. A run is
-    one lane, and each process trains (and saves, and reads) its own lanes (training.trainer), so
-    no save waits for, or is sealed by, another process."""
-    if jax.process_count() == 1:
-        return {}
-    me = jax.process_index()
-    return {"multiprocessing_options": ocp.options.MultiprocessingOptions(
-        primary_host=me, active_processes={me}, barrier_sync_key_prefix=f"ttmjx_process{me}")}
-
-
 def _manager(directory: str, keep: int | None = None, read_only: bool = False) -> ocp.CheckpointManager:
     logger, quiet = logging.getLogger("absl"), _ReadOnlyNotices()
     if read_only:
         logger.addFilter(quiet)
-    alone = _this_process_alone()
-    if alone and not read_only:   # Orbax creates no directory for a subset of processes
-        os.makedirs(os.path.abspath(directory), exist_ok=True)
     try:
-        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=not read_only and not alone,
-                                               read_only=read_only, enable_async_checkpointing=False, **alone)
+        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=not read_only, read_only=read_only,
+                                               enable_async_checkpointing=False)
         return ocp.CheckpointManager(os.path.abspath(directory), options=options, item_names=("state", "config"))
     finally:
         logger.removeFilter(quiet)

@@ -56,13 +56,13 @@ def check_local_devices(devices: int | None) -> int:
 
 
 def process_lanes(lanes: int, processes: int | None = None, index: int | None = None) -> tuple[int, int]:
-    """[lo, hi): the block of `lanes` that this process trains (jax.process_index() of
-    jax.process_count(), or `index` of `processes`). Lanes share nothing, so each process trains
-    its block on its own devices and no array spans processes; the blocks are as even as the
-    counts allow (the first lanes % processes blocks one longer). ValueError when some process
-    would get no lane."""
-    processes = jax.process_count() if processes is None else processes
-    index = jax.process_index() if index is None else index
+    """[lo, hi): the block of `lanes` that this process trains (launcher_process(), or `index` of
+    `processes`). Lanes share nothing, so each process trains its block on its own devices as a
+    program of its own; the blocks are as even as the counts allow (the first lanes % processes
+    blocks one longer). ValueError when some process would get no lane."""
+    here, count = launcher_process()
+    processes = count if processes is None else processes
+    index = here if index is None else index
     if lanes < processes:
         raise ValueError(f"{lanes} lane(s) over {processes} processes: every process needs at least one lane "
                          f"(train more seeds or arms, or start fewer processes)")
@@ -78,35 +78,31 @@ def padded_lanes(lanes: int, devices: int) -> int:
 
 
 # -- several processes (hosts) -----------------------------------------------------------------
-# Launchers that start one process per host and say how many there are.
-PROCESS_COUNTS = ("SLURM_NTASKS", "OMPI_COMM_WORLD_SIZE")
+# (index, count) variables of the launchers that start one process per host: jax.distributed's
+# own names first, then SLURM's and Open MPI's (the ones jax.distributed detects).
+LAUNCHERS = (("JAX_PROCESS_ID", "JAX_NUM_PROCESSES"), ("SLURM_PROCID", "SLURM_NTASKS"),
+             ("OMPI_COMM_WORLD_RANK", "OMPI_COMM_WORLD_SIZE"))
 
 
-def distributed_settings(environ) -> dict | None:
-    """Arguments for jax.distributed.initialize from the environment; None: a one-process run.
+def launcher_process(environ=None) -> tuple[int, int]:
+    """(this process's index, the process count) that the launcher set in the environment:
+    (0, 1) for a single process. ValueError (one line) for an index outside the count.
 
-    JAX_COORDINATOR_ADDRESS (host:port of process 0) with JAX_NUM_PROCESSES and JAX_PROCESS_ID,
-    or a launcher that JAX detects by itself (SLURM, Open MPI) reporting more than one process."""
-    if environ.get("JAX_COORDINATOR_ADDRESS"):
-        named = {"num_processes": "JAX_NUM_PROCESSES", "process_id": "JAX_PROCESS_ID"}
-        return {"coordinator_address": environ["JAX_COORDINATOR_ADDRESS"],
-                **{arg: int(environ[var]) for arg, var in named.items() if environ.get(var)}}
-    if any(int(environ.get(var) or 1) > 1 for var in PROCESS_COUNTS):
-        return {}
-    return None
+    A program over lanes needs nothing from the other processes (no collective, no shared
+    array), so processes are not joined by jax.distributed: its global job would make every
+    Orbax save a collective over all processes and write each array from process 0, where each
+    lane's checkpoint belongs to the one process that trains it (docs/SCALING.md)."""
+    env = os.environ if environ is None else environ
+    for index_var, count_var in LAUNCHERS:
+        if env.get(count_var):
+            count, index = int(env[count_var]), int(env.get(index_var) or 0)
+            if not 0 <= index < count:
+                raise ValueError(f"{index_var}={index} with {count_var}={count}: expected 0..{count - 1}")
+            return index, count
+    return 0, 1
 
 
 def is_primary() -> bool:
-    """Process 0: the one that writes a batch's seeds.json (each lane's directory is written by
-    the process that trains it)."""
-    return jax.process_index() == 0
-
-
-def initialize_distributed(environ=None) -> bool:
-    """jax.distributed.initialize() when the environment describes a multi-process run (it
-    must come before JAX's first computation); returns whether it was called."""
-    settings = distributed_settings(os.environ if environ is None else environ)
-    if settings is None or jax.distributed.is_initialized():
-        return False
-    jax.distributed.initialize(**settings)
-    return True
+    """Process 0 of the launcher: the one that writes a batch's seeds.json (each lane's directory
+    is written by the process that trains it)."""
+    return launcher_process()[0] == 0

@@ -151,12 +151,14 @@ THROW_BLOCK = 16
 THROW_STREAM = 0x7E40   # fold-in tag that separates the throw keys from the per-round keys
 
 
-def over_seeds(fn, backend: str):
+def over_seeds(fn, backend: str, devices: int = 1):
     """fn(state, cache, key, knobs) of one run -> the same over a leading lane axis. On an
-    accelerator a vmap (one wider program). On MuJoCo C's CPU a loop over the lanes inside the
-    program: the updates already keep the cores busy, and XLA:CPU's batched matrix products were
-    slower than the seeds one after another (docs/BENCHMARKS.md)."""
-    if backend_kind(backend).traceable:
+    accelerator, or over several devices, a vmap (one wider program, which jit's partitioner
+    splits into each device's block of lanes). On MuJoCo C's CPU with one device a loop over the
+    lanes inside the program: the updates already keep the cores busy, and XLA:CPU's batched
+    matrix products were slower than the seeds one after another (docs/BENCHMARKS.md); a loop
+    over lanes split across devices would make XLA gather every lane onto every device."""
+    if backend_kind(backend).traceable or devices > 1:
         return jax.vmap(fn)
     return lambda *args: jax.lax.map(lambda a: fn(*a), args)
 
@@ -193,7 +195,7 @@ class Practice:
         self.train_loop, self._train_one = None, None
         if train_steps > 0:
             self._train_one = train_loop_fn(pcfg, tcfg, train_steps)   # one run, pure
-            self.train_loop = self.lanes(over_seeds(self._train_one, backend.name))
+            self.train_loop = self.lanes(over_seeds(self._train_one, backend.name, self.layout.mesh.size))
         sample = lambda k: thrower.sample_throws(k, world, THROW_BLOCK * episodes)  # noqa: E731
         self._sample_throws = self.lanes(jax.vmap(sample))
         self._bank = (None, None)

@@ -24,9 +24,9 @@ The lanes are laid over the devices (training.mesh.lane_layout: a `lane` mesh ax
 device unless cfg.devices says fewer): each device computes a block of lanes (jit's partitioner
 splits the lane axis; training.practice.over_lanes), nothing passes between lanes, and a lane
 count the devices do not divide is padded with copies of the last lane, computed and never
-written. With several processes (jax.distributed: training.mesh.initialize_distributed), each
-process trains its own block of lanes on its own devices (training.mesh.process_lanes): lanes
-share nothing, so no array spans processes.
+written. With several processes (one per host, started by a launcher: training.mesh.launcher_process),
+each trains its own block of lanes on its own devices (training.mesh.process_lanes): lanes share
+nothing, so no array spans processes.
 
 Every random draw of iteration i comes from fold_in(lane key, i), and the state is saved at
 iteration boundaries, so a run killed at any point and resumed ends with the same parameters, bit

@@ -763,10 +763,7 @@ def enable_compile_cache():
 
 
 def prepare() -> None:
-    """Before parsing: JAX's distributed start when several processes run (presets probe the
-    devices), and the persistent compilation cache."""
-    from training.mesh import initialize_distributed
-    initialize_distributed()
+    """Before parsing: the persistent compilation cache."""
     enable_compile_cache()
 
 

@@ -2,11 +2,11 @@
 where a round's time goes), and summarize the trace: for each device and host thread group its
 busy time, event count, and the events that take most of it.
 
-    python scripts/dev/profile_round.py paper-sim OUT_DIR [--demos 256]
+    python scripts/dev/profile_round.py paper-sim OUT_DIR [--demos 128] [--window 0.3]
 
-Writes OUT_DIR/profile_summary.json (and the perfetto trace, trace.json.gz, if it is under 15 MB).
-The round and chunk are each run once to compile, then timed, then traced; the trace covers a
-practice round followed by a pretraining chunk of the preset's updates, each blocked until ready.
+Writes OUT_DIR/profile_summary.json (and each piece's perfetto trace, trace_<piece>.json.gz, if
+small). The round and the chunk are each run once to compile, then timed, then sampled by the
+profiler for --window seconds from their launch.
 """
 import argparse
 import collections
@@ -21,6 +21,7 @@ import tempfile
 import time
 
 import jax
+import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 from training.runconfig import preset  # noqa: E402
@@ -69,7 +70,8 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("preset")
     ap.add_argument("out")
-    ap.add_argument("--demos", type=int, default=256)
+    ap.add_argument("--demos", type=int, default=128)
+    ap.add_argument("--window", type=float, default=0.3, help="seconds of each piece traced")
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
     scratch = tempfile.mkdtemp(prefix="ttmjx-profile-")
@@ -87,18 +89,36 @@ def main():
     _, res["chunk_first_s"] = timed_step(run, ck, 0)
     _, res["chunk_s"] = timed_step(run, ck, 0)
     print(json.dumps(res), flush=True)
-    tdir = os.path.join(scratch, "trace")
+    # A round is 1,600 sequential physics steps of hundreds of kernels each: a whole round's trace
+    # overflows CUPTI's buffers and takes minutes to convert. So each piece is sampled: the trace
+    # runs for WINDOW_S from the moment the piece is launched (the round's goals, then its rollout;
+    # the chunk's first updates), and is summarized per device stream.
+    base = np.asarray(ck.key)
+    fold = jax.vmap(jax.random.fold_in, in_axes=(0, None))
+    pr = run.practice
+    throws = pr.round_throws(base, it_p)
+    pieces = {"round": lambda: pr.iteration(ck.state, ck.cache, run.place(fold(base, it_p)), throws,
+                                            np.array([cfg.episodes_per_ssp], np.int32), run.knobs),
+              "chunk": lambda: pr.iteration(ck.state, ck.cache, run.place(fold(base, 0)), None, None, run.knobs)}
     opts = jax.profiler.ProfileOptions()
-    opts.python_tracer_level = 0        # XLA's host and device events only: the Python tracer doubles the round
-    with jax.profiler.trace(tdir, create_perfetto_trace=True, profiler_options=opts):
-        _, res["traced_round_s"] = timed_step(run, ck, it_p)
-        _, res["traced_chunk_s"] = timed_step(run, ck, 0)
-    trace = glob.glob(os.path.join(tdir, "**", "perfetto_trace.json.gz"), recursive=True)
-    res["trace_files"] = trace
-    if trace:
-        res["summary"] = summarize(trace[0])
-        if os.path.getsize(trace[0]) < 15 * 2 ** 20:
-            shutil.copy(trace[0], os.path.join(a.out, "trace.json.gz"))
+    opts.python_tracer_level = 0        # XLA's host and device events only
+    res["window_s"] = a.window
+    res["summary"] = {}
+    for name, fn in pieces.items():
+        tdir = os.path.join(scratch, "trace_" + name)
+        jax.profiler.start_trace(tdir, create_perfetto_trace=True, profiler_options=opts)
+        t0 = time.perf_counter()
+        out = fn()
+        time.sleep(max(0.0, a.window - (time.perf_counter() - t0)))
+        jax.profiler.stop_trace()
+        jax.block_until_ready(out)
+        trace = glob.glob(os.path.join(tdir, "**", "perfetto_trace.json.gz"), recursive=True)
+        if trace:
+            res["summary"][name] = summarize(trace[0])
+            if os.path.getsize(trace[0]) < 6 * 2 ** 20:
+                shutil.copy(trace[0], os.path.join(a.out, f"trace_{name}.json.gz"))
+        print(json.dumps({name: {k: {"busy_s": v["busy_s"], "events": v["events"], "span_s": v["span_s"]}
+                                 for k, v in res["summary"].get(name, {}).items()}}), flush=True)
     with open(os.path.join(a.out, "profile_summary.json"), "w") as f:
         json.dump(res, f, indent=1)
     print(json.dumps({k: v for k, v in res.items() if k != "summary"}), flush=True)
