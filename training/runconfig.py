@@ -52,7 +52,8 @@ class RunConfig:
     backend: Literal["auto", "c", "mjx"] = "auto"
     """auto: MJX on an accelerator, MuJoCo C on a CPU."""
     devices: int | None = None
-    """Devices to train on (None: all); members and practice throws are split over them (docs/SCALING.md)."""
+    """Local devices the lanes are laid over (None: every one, at most one per lane; a seed is a lane of one, so
+    --seeds N or a table's cells fill them; docs/SCALING.md)."""
     run_dir: str = "runs/default"
     """Where config.json, metrics.jsonl, the curves and checkpoints/ go; the same command resumes it."""
     keep_checkpoints: int = 3
