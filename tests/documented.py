@@ -52,7 +52,7 @@ def check_metrics_rows(rows: list[dict], cfg) -> None:
     """Every key of a run's metrics.jsonl rows is one DATA.md names ("Run directories") and means it."""
     regions = {f"{g}_30cm" for g in GOAL_REGIONS}
     members = {f"member{i}_30cm" for i in range(cfg.train.members)} if cfg.train.members > 1 else set()
-    base = {"iteration", "phase", "trajectories", "updates", "cache_size", "loss", "seconds"}
+    base = {"iteration", "phase", "trajectories", "updates", "cache_size", "loss", "seconds", "seeds_in_program"}
     practice = {f"practice_{k}" for k in {"hit_rate", "on_table_rate", "within_30cm", "within_20cm", "kept"}
                 | regions | members}
     evaluation = {f"eval_{k}" for k in GOAL_METRICS | regions | members}
