@@ -13,8 +13,8 @@ trainer:
 5. the final demonstrations: 3.6k episodes of that policy, goals uniform over the half, 4 of
    the 8 joints perturbed (ttmjx/tools/bootstrap.py plays it; demos source `paper`).
 
-Stages 3 and 4 are ONE run (`training.trainer.Run`, a batch of one lane: its checkpoints, metrics and resume): the
-stage-4 run is the stage-3 run resumed with a larger `total_trajectories`; the only piece
+Stages 3 and 4 are ONE run (`training.trainer.Run`, a batch of one lane: its checkpoints,
+metrics and resume): the stage-4 run is the stage-3 run resumed with a larger `total_trajectories`; the only piece
 replaced is where practice draws its goals (`GoalBoxPractice`, a `training.practice.Practice`
 whose goal draw is a box). Nothing here was tuned against a GoalsEye learning result: the
 sizes come from the CPU budget and the stages' own landing coverage and return rates

@@ -79,9 +79,9 @@ class Run:
     """L runs of one program trained together over the lane layout's devices: `cfgs`, a list of
     configurations that differ only in what lanes may (training.seeds.check_one_batch), or one
     RunConfig (a batch of one). `evaluation(lane configs)` gives the evaluation, (params [L],
-    backend, keys [L]) -> [metrics], called at the evaluation iterations; None skips evaluation. `parent` (optional): the batch's
-    directory, where seeds.json is written. `practice`: the Practice class (a subclass changes
-    where practice goals are drawn: training.bootstrap_paper)."""
+    backend, keys [L]) -> [metrics], called at the evaluation iterations; None skips evaluation.
+    `parent` (optional): the batch's directory, where seeds.json is written. `practice`: the
+    Practice class (a subclass changes where practice goals are drawn: training.bootstrap_paper)."""
 
     def __init__(self, cfgs: list[RunConfig] | RunConfig, evaluation: Evaluation | None = None, progress: bool = True,
                  log=print, parent: str | None = None, practice: type[Practice] = Practice, **practice_kw):
