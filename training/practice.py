@@ -22,7 +22,6 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import NamedSharding, PartitionSpec
 
 from models.config import PolicyConfig
 from models.policy import (NoisyParams, make_policy, with_action_noise, with_integrating_action_noise,
@@ -30,7 +29,7 @@ from models.policy import (NoisyParams, make_policy, with_action_noise, with_int
 from training.cache import Cache, add_episodes
 from training.config import TrainConfig
 from training.frontier import with_frontier
-from training.mesh import LANE, Layout, lane_layout
+from training.mesh import Layout, lane_layout
 from training.update import Knobs, TrainState, acting_params, lane_knobs, train_loop_fn
 from ttmjx.world import thrower
 from ttmjx.world.backends import Backend, backend_kind
@@ -171,8 +170,7 @@ def over_lanes(fn, layout: Layout):
     MJX practice round ended in a segmentation fault inside XLA (docs/SCALING.md)."""
     if layout.mesh.size == 1:
         return jax.jit(fn)
-    split = NamedSharding(layout.mesh, PartitionSpec(LANE))
-    return jax.jit(fn, in_shardings=split, out_shardings=split)
+    return jax.jit(fn, in_shardings=layout.lanes, out_shardings=layout.lanes)
 
 
 class Practice:

@@ -146,13 +146,13 @@ class Run:
             dev = self.layout.mesh.devices.flat[d]
             block = cks[d * self.per_device:(d + 1) * self.per_device]
             blocks.append(stacked([jax.device_put(c, dev) for c in block]))
-        sharding = self.layout.sharding(mesh.LANE)
+        sharding = self.layout.lanes
         return jax.tree.map(lambda *xs: jax.make_array_from_single_device_arrays(
             (self.lanes,) + xs[0].shape[1:], sharding, list(xs)), *blocks)
 
     def place(self, tree):
         """A stacked tree [L, ...] split over the lane layout's devices, a block of lanes each."""
-        return jax.device_put(tree, self.layout.sharding(mesh.LANE))
+        return jax.device_put(tree, self.layout.lanes)
 
     def save(self, ck: Checkpointed):
         """Every lane's checkpoint in its own run directory, several at once: Orbax spends most
