@@ -82,8 +82,9 @@ def safe_target(limits: Limits, action, last_target: np.ndarray, elapsed: float 
     """[8] target within the joint ranges and one speed-limited step of last_target [8].
 
     action: the policy's [8] output (anything: it is checked here); with the limits of some of
-    the joints only (Limits of [k] arrays, e.g. the gantry's 2 in drivers/lead.py), [k] of them. elapsed: seconds since the
-    last command was sent (None = a full tick). speed_scale <= 1 slows the step (moving home).
+    the joints only (Limits of [k] arrays, e.g. the gantry's 2 in drivers/lead.py), [k] of them.
+    elapsed: seconds since the last command was sent (None = a full tick). speed_scale <= 1
+    slows the step (moving home).
     """
     last = np.asarray(last_target, np.float64)
     a = np.asarray(action, np.float64)

@@ -40,7 +40,7 @@ from deploy.robot.drivers.gantry import ModbusGantry
 from deploy.robot.drivers.lead import GantryLead
 from deploy.robot.drivers.tracker import UdpTracker
 from deploy.robot.hardware import Clock
-from deploy.robot.safety import Limits, part_limits
+from deploy.robot.safety import Limits, limits_from_contract, part_limits
 
 GANTRY, ARM = slice(0, 2), slice(2, 8)
 
@@ -112,10 +112,10 @@ class CellRobot:
         if not rec:
             return q, lead
         times = np.array([r[0] for r in rec])
-        for i, t in enumerate(t_sent):
-            j = np.searchsorted(times, t) if np.isfinite(t) else len(rec)
-            if j < len(rec):
-                q[i], lead[i] = rec[j][1], rec[j][2]
+        j = np.searchsorted(times, np.where(np.isfinite(t_sent), t_sent, np.inf))
+        found = j < len(rec)
+        q[found] = np.array([rec[k][1] for k in j[found]]).reshape(-1, 2)
+        lead[found] = [rec[k][2] for k in j[found]]
         return q, lead
 
     def wait_for_feedback(self, timeout_s: float) -> None:
@@ -169,7 +169,6 @@ class Cell:
             self.arm = self._keep(EgmArm(cfg.egm, clock, contract.dt, self.faults).start())
             self.gantry = self._keep(ModbusGantry(cfg.gantry, clock, self.faults).start())
             self.launcher = self._keep(Launcher(cfg.launcher)) if cfg.launcher else None
-            from deploy.robot.safety import limits_from_contract
             self.robot = CellRobot(self.gantry, self.arm, clock, limits_from_contract(contract))
             try:
                 self.robot.wait_for_feedback(feedback_timeout_s)
