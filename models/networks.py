@@ -1,7 +1,8 @@
 """The two networks, in normalized units: one control step and a whole sequence.
 
 Both take per step `x [S, O]` (S = PolicyConfig.input_frames: 1 for the LSTM, the frame stack
-for the MLP) and return a normalized action [8]. Training (a sequence) and rollouts (one step at
+for the MLP); their last layer has PolicyConfig.head_size outputs, read as a normalized action
+[8] by models.heads. Training (a sequence) and rollouts (one step at
 a time) call the same step function, so the two cannot drift apart.
 """
 from __future__ import annotations
@@ -10,13 +11,15 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from models.config import ACTION_SIZE, PolicyConfig
+from models.config import PolicyConfig
+from models.heads import head_action
 
 
 class LSTMNet(nn.Module):
-    """`layers` stacked LSTM cells and a linear head (the paper's policy)."""
+    """`layers` stacked LSTM cells and a linear head of `out` values (the paper's policy)."""
     hidden: int
     layers: int
+    out: int
 
     @nn.compact
     def __call__(self, carry, x):
@@ -24,19 +27,20 @@ class LSTMNet(nn.Module):
         for i in range(self.layers):
             c, x = nn.OptimizedLSTMCell(self.hidden, name=f"lstm{i}")(carry[i], x)
             new_carry.append(c)
-        return tuple(new_carry), nn.Dense(ACTION_SIZE, name="head")(x)
+        return tuple(new_carry), nn.Dense(self.out, name="head")(x)
 
 
 class MLPNet(nn.Module):
-    """`layers` ReLU layers of `hidden` units and a linear head."""
+    """`layers` ReLU layers of `hidden` units and a linear head of `out` values."""
     hidden: int
     layers: int
+    out: int
 
     @nn.compact
     def __call__(self, x):
         for i in range(self.layers):
             x = nn.relu(nn.Dense(self.hidden, name=f"dense{i}")(x))
-        return nn.Dense(ACTION_SIZE, name="head")(x)
+        return nn.Dense(self.out, name="head")(x)
 
 
 def zero_carry(cfg: PolicyConfig):
@@ -47,32 +51,48 @@ def zero_carry(cfg: PolicyConfig):
     return tuple((z, z) for _ in range(cfg.layers))
 
 
+def _module(cfg: PolicyConfig) -> nn.Module:
+    net = LSTMNet if cfg.kind == "lstm" else MLPNet
+    return net(cfg.hidden, cfg.layers, cfg.head_size)
+
+
 def init_net(key, cfg: PolicyConfig):
     """Fresh network parameters (a flax params dict) for one member."""
     x = jnp.zeros((cfg.input_frames, cfg.obs_size), jnp.float32)
     if cfg.kind == "lstm":
-        return LSTMNet(cfg.hidden, cfg.layers).init(key, zero_carry(cfg), x[0])
-    return MLPNet(cfg.hidden, cfg.layers).init(key, x.reshape(-1))
+        return _module(cfg).init(key, zero_carry(cfg), x[0])
+    return _module(cfg).init(key, x.reshape(-1))
 
 
-def net_step(cfg: PolicyConfig, net_params, carry, x):
-    """One control step: x [S, O] normalized -> (carry, normalized action [8])."""
+def net_step_outputs(cfg: PolicyConfig, net_params, carry, x):
+    """One control step: x [S, O] normalized -> (carry, the head's outputs [head_size])."""
     want = (cfg.input_frames, cfg.obs_size)
     if tuple(x.shape) != want:
         raise ValueError(f"net_step: input has shape {tuple(x.shape)}, expected {want} "
                          f"(frames, obs_size) for kind={cfg.kind!r}")
     if cfg.kind == "lstm":
-        return LSTMNet(cfg.hidden, cfg.layers).apply(net_params, carry, x[0])
-    return carry, MLPNet(cfg.hidden, cfg.layers).apply(net_params, x.reshape(-1))
+        return _module(cfg).apply(net_params, carry, x[0])
+    return carry, _module(cfg).apply(net_params, x.reshape(-1))
+
+
+def net_step(cfg: PolicyConfig, net_params, carry, x):
+    """One control step: x [S, O] normalized -> (carry, normalized action [8])."""
+    carry, y = net_step_outputs(cfg, net_params, carry, x)
+    return carry, head_action(cfg, y)
+
+
+def net_sequence_outputs(cfg: PolicyConfig, net_params, xs):
+    """A sequence from a zero state: xs [L, S, O] normalized -> the head's outputs [L, head_size].
+    The same function as net_step_outputs applied step by step (tests/test_models.py), computed
+    for training's speed: the LSTM layer by layer."""
+    if cfg.kind != "lstm":  # no state: every step independently
+        return jax.vmap(lambda x: net_step_outputs(cfg, net_params, (), x)[1])(xs)
+    return lstm_sequence(net_params, xs[:, 0])
 
 
 def net_sequence(cfg: PolicyConfig, net_params, xs):
-    """A sequence from a zero state: xs [L, S, O] normalized -> normalized actions [L, 8].
-    The same function as net_step applied step by step (tests/test_models.py), computed for
-    training's speed: the LSTM layer by layer."""
-    if cfg.kind != "lstm":  # no state: every step independently
-        return jax.vmap(lambda x: net_step(cfg, net_params, (), x)[1])(xs)
-    return lstm_sequence(net_params, xs[:, 0])
+    """A sequence from a zero state: xs [L, S, O] normalized -> normalized actions [L, 8]."""
+    return head_action(cfg, net_sequence_outputs(cfg, net_params, xs))
 
 
 def gate_weights(cell: dict) -> tuple:
@@ -83,7 +103,7 @@ def gate_weights(cell: dict) -> tuple:
 
 
 def lstm_sequence(net_params, x):
-    """LSTMNet over a whole sequence, x [L, O] -> actions [L, 8], layer by layer: a layer's input
+    """LSTMNet over a whole sequence, x [L, O] -> head outputs [L, D], layer by layer: a layer's input
     projection for all L steps is one matrix product outside its recurrence (the sequential scan
     keeps only h @ W_h), which is what a GPU does fast. The cell's arithmetic is flax's
     OptimizedLSTMCell's: z = (h W_h + b) + x W_i; c' = s(f) c + s(i) tanh(g); h' = s(o) tanh(c')."""

@@ -75,12 +75,15 @@ def numpy_policy(pcfg, params) -> ExportedPolicy:
     from deploy.sim.export import policy_tensors, select_members
     tensors, is_ens = policy_tensors(params)
     tensors, _ = select_members(tensors, is_ens, None, is_ens)
-    return ExportedPolicy(PolicySpec(pcfg.kind, pcfg.hidden, pcfg.layers, pcfg.obs_size,
-                                     pcfg.frame_stack), tensors)
+    from deploy.sim.export import _spec
+    return ExportedPolicy(_spec(pcfg), tensors)
 
 
 # --------------------------------------------------------------------------- numpy == JAX
-@pytest.mark.parametrize("pcfg,steps", [(LSTM, 300), (MLP, 100)], ids=["lstm", "framestack"])
+MIXTURE = PolicyConfig(kind="lstm", hidden=32, layers=2, head="mixture", components=4)
+
+
+@pytest.mark.parametrize("pcfg,steps", [(LSTM, 300), (MLP, 100), (MIXTURE, 100)], ids=["lstm", "framestack", "mixture"])
 def test_numpy_policy_equals_jax_over_many_steps(pcfg, steps):
     params = random_params(pcfg, seed=3)
     frames, stacks = observations(steps, pcfg.frame_stack, seed=4)
@@ -170,7 +173,7 @@ def test_export_round_trip_and_golden_self_test(ensemble_export):
 CONTRACT_KEYS = {"format", "version", "robot", "runtime", "observation", "action", "goal", "policy", "normalization",
                  "weights", "golden", "onnx", "source", "world", "timing"}
 POLICY_KEYS = {"kind", "hidden", "layers", "obs_size", "frame_stack", "input_frames", "members", "ensemble_rule",
-               "state", "cell", "trained_control_hz"}
+               "head", "components", "head_rule", "state", "cell", "trained_control_hz"}
 TIMING_KEYS = {"model", "ranges", "ideal", "randomized_per_episode", "centre", "meaning", "sha256"}
 
 
@@ -238,6 +241,22 @@ def test_export_one_member_and_framestack(tmp_path):
     frames, stacks = observations(20, 4, seed=2)
     np.testing.assert_allclose(pol.run(frames, stacks), jax_actions(MLP, mlp, frames, stacks),
                                rtol=0, atol=1e-5)
+
+
+def test_a_mixture_head_exports_and_plays_on_the_numpy_engine_without_a_graph(tmp_path):
+    """The mixture head's export: its policy section names the head, the numpy engine plays it
+    as the JAX policy does (the golden self-test passed on loading), and the ONNX graph, built for
+    the mean head only, is left out on `auto` and refused when asked for."""
+    params = random_params(MIXTURE, seed=7, members=2)
+    export(params, MIXTURE, World(), str(tmp_path / "mix"), ensemble=True)
+    pol, _ = load_export(str(tmp_path / "mix"))
+    doc = read_contract(str(tmp_path / "mix"))
+    assert (doc["policy"]["head"], doc["policy"]["components"], doc["onnx"]) == ("mixture", 4, None)
+    frames, stacks = observations(20, 8, seed=2)
+    want = np.mean([jax_actions(MIXTURE, member(params, i), frames, stacks) for i in range(2)], 0)
+    np.testing.assert_allclose(pol.run(frames), want, rtol=0, atol=1e-5)
+    with pytest.raises(ExportError, match="mean head only.*'mixture'"):
+        export(params, MIXTURE, World(), str(tmp_path / "mix2"), ensemble=True, onnx=True)
 
 
 def test_export_refuses_bad_requests(tmp_path, ensemble_export):

@@ -32,6 +32,61 @@ def test_policy_config_rejects_bad_values():
     with pytest.raises(ValueError, match="obs_size=14"):
         PolicyConfig(obs_size=14)
     assert PolicyConfig("lstm").input_frames == 1 and PolicyConfig("framestack").input_frames == 8
+    with pytest.raises(ValueError, match="head='median'"):
+        PolicyConfig(head="median")
+    with pytest.raises(ValueError, match="components=0"):
+        PolicyConfig(head="mixture", components=0)
+    assert PolicyConfig().head_size == 8 and PolicyConfig(head="mixture", components=3).head_size == 51
+
+
+def test_mixture_head_reads_as_a_plain_mixture_of_gaussians():
+    """models.heads against a plain loop: the action is the mean of the largest-weight component,
+    the loss the mixture's negative log-likelihood per action value."""
+    from models.heads import head_action, step_losses
+    k = 3
+    cfg = PolicyConfig(head="mixture", components=k)
+    y = np.asarray(jax.random.normal(jax.random.PRNGKey(0), (5, cfg.head_size)), np.float64)
+    target = np.asarray(jax.random.normal(jax.random.PRNGKey(1), (5, 8)), np.float64)
+    for row, a in zip(range(5), target):
+        logits, means = y[row, :k], y[row, k:k + 8 * k].reshape(k, 8)
+        log_std = np.clip(y[row, k + 8 * k:].reshape(k, 8), -5, 1)
+        w = np.exp(logits - logits.max()) / np.exp(logits - logits.max()).sum()
+        dens = [np.prod(np.exp(-0.5 * ((a - means[j]) / np.exp(log_std[j])) ** 2)
+                        / (np.exp(log_std[j]) * np.sqrt(2 * np.pi))) for j in range(k)]
+        np.testing.assert_allclose(step_losses(cfg, jnp.asarray(y[row], jnp.float32), jnp.asarray(a, jnp.float32)),
+                                   -np.log(np.dot(w, dens)) / 8, rtol=1e-4)
+        np.testing.assert_allclose(head_action(cfg, jnp.asarray(y[row], jnp.float32)), means[np.argmax(logits)],
+                                   rtol=1e-6)
+    mean_cfg = PolicyConfig()
+    np.testing.assert_allclose(step_losses(mean_cfg, jnp.ones(8), jnp.zeros(8)), 1.0)
+
+
+def test_the_mixture_head_imitates_one_of_two_strokes_the_mean_head_averages():
+    """Data holding two strokes for one input (every action +1 or every action -1, half each, as
+    two timings that land alike): the MSE head learns their mean, 0, a stroke the data never
+    made; the mixture head acts with one of the two."""
+    import optax
+    from models.networks import init_net, net_sequence, net_sequence_outputs
+    from models.heads import step_losses
+    x = jnp.broadcast_to(jax.random.normal(jax.random.PRNGKey(2), (1, 1, 13)), (256, 1, 13))  # one input
+    sign = jnp.where(jax.random.bernoulli(jax.random.PRNGKey(0), 0.5, (256, 1)), 1.0, -1.0)
+    target = jnp.broadcast_to(sign, (256, 8))
+    actions = {}
+    for head in ("mean", "mixture"):
+        cfg = PolicyConfig("framestack", hidden=16, layers=1, frame_stack=1, head=head, components=2)
+        net, opt = init_net(jax.random.PRNGKey(1), cfg), optax.adam(1e-2)
+        loss = lambda p: jnp.mean(step_losses(cfg, net_sequence_outputs(cfg, p, x), target))  # noqa: E731
+
+        def step(carry, _, loss=loss, opt=opt):
+            p, s = carry
+            g = jax.grad(loss)(p)
+            u, s = opt.update(g, s, p)
+            return (optax.apply_updates(p, u), s), None
+        (net, _), _ = jax.lax.scan(step, (net, opt.init(net)), None, length=400)
+        actions[head] = np.asarray(net_sequence(cfg, net, x[:1]))[0]
+    assert np.abs(actions["mean"]).max() < 0.2, actions["mean"]
+    assert np.abs(np.abs(actions["mixture"]) - 1).max() < 0.2, actions["mixture"]
+    assert len(set(np.sign(actions["mixture"]))) == 1            # one stroke, not a mix of the two
 
 
 def test_normalizer_from_data_uses_valid_steps_and_floors_std():

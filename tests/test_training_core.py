@@ -269,6 +269,29 @@ def test_policy_loss_uses_normalized_actions():
     assert float(policy_loss(cfg, p, batch)) == pytest.approx(0.01, rel=1e-4)
 
 
+@pytest.mark.parametrize("kind", ["lstm", "framestack"])
+def test_bfloat16_updates_compute_the_float32_loss_and_gradient_to_bfloat16_precision(kind):
+    """TrainConfig.update_dtype='bfloat16': the same loss and gradient as float32 within what
+    bfloat16's 8-bit mantissa allows (relative 2^-8 per product, a few per cent after a sum over
+    a window), with the gradient float32 for the float32 weights."""
+    cfg = PolicyConfig(kind, hidden=32, layers=2, frame_stack=2)
+    norm = Normalizer(jnp.zeros(13), jnp.ones(13), jnp.zeros(8), jnp.ones(8))
+    p = init_params(jax.random.PRNGKey(0), cfg, norm)
+    frames = jax.random.normal(jax.random.PRNGKey(1), (4, 12, cfg.input_frames, 13))
+    actions = jax.random.normal(jax.random.PRNGKey(2), (4, 12, 8))
+    zeros = jnp.zeros(4, jnp.int32)
+    batch = Batch(frames, actions, jnp.ones((4, 12), bool), zeros, zeros)
+    out = {dt: jax.value_and_grad(lambda net, dt=dt: policy_loss(cfg, p._replace(net=net), batch, dt))(p.net)
+           for dt in ("float32", "bfloat16")}
+    (l32, g32), (l16, g16) = out["float32"], out["bfloat16"]
+    assert l16.dtype == jnp.float32 and all(g.dtype == jnp.float32 for g in jax.tree.leaves(g16))
+    assert float(l16) == pytest.approx(float(l32), rel=2e-2)
+    flat = lambda g: jnp.concatenate([x.ravel() for x in jax.tree.leaves(g)])  # noqa: E731
+    a, b = flat(g32), flat(g16)
+    assert float(jnp.linalg.norm(a - b) / jnp.linalg.norm(a)) < 5e-2
+    assert float(jnp.dot(a, b) / (jnp.linalg.norm(a) * jnp.linalg.norm(b))) > 0.99
+
+
 # --- ensemble updates -----------------------------------------------------------------------
 
 def test_ensemble_members_differ_and_train_in_one_vmapped_step(cache):

@@ -8,6 +8,7 @@ from typing import Literal
 PRACTICE_KEEP = ("hits", "near_half")
 PRACTICE_GOALS = ("uniform", "frontier")   # where practice goals are drawn (training.frontier)
 NOISE_FORMS = ("offset", "integrating")    # how action noise is applied (training.practice)
+UPDATE_DTYPES = ("float32", "bfloat16")    # the arithmetic of the updates (training.loss)
 # Practice goals farther than this beyond the table's edges (m) are not goals a return can aim at
 # (the opponent's half is 1.37 m deep and 1.525 m wide).
 MAX_GOAL_MARGIN = 1.0
@@ -63,6 +64,10 @@ class TrainConfig:
     # 0: uniform over rows (the paper), 1: uniform over the places landed on.
     balance: float = 0.0
     min_std: float = 1e-3                # floor of normalization stds
+    # The arithmetic of each update's forward and backward pass: float32, or bfloat16 (the
+    # network's weights and inputs cast to bfloat16 for the products; the weights themselves,
+    # Adam's moments and the loss stay float32). Rollouts and evaluations act in float32.
+    update_dtype: Literal[UPDATE_DTYPES] = "float32"
 
     def __post_init__(self):
         for name in ("window", "batch_size", "members", "capacity"):
@@ -84,6 +89,8 @@ class TrainConfig:
         if not 0.0 <= self.frontier_fraction <= 1.0:
             raise ValueError(f"TrainConfig.frontier_fraction={self.frontier_fraction}, expected the share of each "
                              f"round's practice goals drawn from the frontier, in [0, 1]")
+        if self.update_dtype not in UPDATE_DTYPES:
+            raise ValueError(f"TrainConfig.update_dtype={self.update_dtype!r}, expected one of {UPDATE_DTYPES}")
         if self.practice_keep not in PRACTICE_KEEP:
             raise ValueError(f"TrainConfig.practice_keep={self.practice_keep!r}, expected one of {PRACTICE_KEEP}")
         if not 0.0 <= self.demo_fraction <= 1.0:

@@ -1,4 +1,6 @@
-"""The imitation loss: MSE between commanded and predicted actions over valid steps."""
+"""The imitation loss over valid steps: the MSE between commanded and predicted actions (the
+paper's mean head), or the negative log-likelihood of the commanded actions (the mixture head;
+models/heads.py)."""
 from __future__ import annotations
 
 import jax
@@ -6,7 +8,10 @@ import jax.numpy as jnp
 
 from models.config import PolicyConfig
 from models.normalizer import normalize_actions
-from models.policy import PolicyParams, predict_sequence
+from models.heads import step_losses
+from models.networks import net_sequence_outputs
+from models.normalizer import normalize_obs
+from models.policy import PolicyParams
 from training.sampler import Batch
 
 
@@ -22,8 +27,26 @@ def masked_mse(pred, target, mask):
     return jnp.sum(w * (pred - target) ** 2) / (jnp.maximum(w.sum(), 1.0) * pred.shape[-1])
 
 
-def policy_loss(cfg: PolicyConfig, params: PolicyParams, batch: Batch):
+def masked_mean(losses, mask):
+    """Scalar mean of per-step losses [B, k] over the steps where mask [B, k] is set; 0 if none."""
+    if losses.shape != mask.shape:
+        raise ValueError(f"masked_mean: losses {tuple(losses.shape)} and mask {tuple(mask.shape)} must be [B, k]")
+    w = jnp.asarray(mask, losses.dtype)
+    return jnp.sum(w * losses) / jnp.maximum(w.sum(), 1.0)
+
+
+def policy_loss(cfg: PolicyConfig, params: PolicyParams, batch: Batch, dtype: str = "float32"):
     """Scalar loss of one member on a batch, in normalized action units (each joint has unit
-    variance in the data, so metres of gantry and radians of wrist weigh alike)."""
-    pred = jax.vmap(lambda f: predict_sequence(cfg, params, f))(batch.frames)   # [B, k, 8]
-    return masked_mse(pred, normalize_actions(params.norm, batch.actions), batch.mask)
+    variance in the data, so metres of gantry and radians of wrist weigh alike).
+
+    dtype: the network's arithmetic (TrainConfig.update_dtype). With bfloat16 the weights and the
+    normalized inputs are cast for the products and the outputs cast back, so the loss, its
+    gradient with respect to the float32 weights and the optimizer stay float32."""
+    dt = jnp.dtype(dtype)
+    net = params.net if dt == jnp.float32 else jax.tree.map(lambda w: w.astype(dt), params.net)
+    x = normalize_obs(params.norm, batch.frames).astype(dt)                        # [B, k, S, O]
+    y = jax.vmap(lambda f: net_sequence_outputs(cfg, net, f))(x).astype(jnp.float32)   # [B, k, D]
+    target = normalize_actions(params.norm, batch.actions)
+    if cfg.head == "mean":      # the paper's loss, written as masked_mse (tests check it against a plain one)
+        return masked_mse(y, target, batch.mask)
+    return masked_mean(step_losses(cfg, y, target), batch.mask)

@@ -263,8 +263,9 @@ def _policy_of(doc: dict, runtime: Contract, directory: str) -> tuple[PolicySpec
     """(spec, members) of the contract's policy section, checked against the runtime."""
     pol = doc["policy"]
     try:
+        # Exports before the mixture head have no head fields: theirs is the mean head.
         spec = PolicySpec(pol["kind"], pol["hidden"], pol["layers"], pol["obs_size"],
-                          pol["frame_stack"]).check()
+                          pol["frame_stack"], pol.get("head", "mean"), pol.get("components", 1)).check()
         members = int(pol["members"])
     except (KeyError, TypeError, ValueError) as e:
         raise ExportError(f"{directory}: invalid policy section ({e})") from e

@@ -10,7 +10,10 @@ exactly what `models.make_policy(cfg).apply` computes, in float32:
         c' = f c + i g;  h' = o tanh(c');  x = h'
         y = h'_last Whead + bhead
   framestack: x = flatten(frames [k, O]);  x = relu(x W_l + b_l) per layer;  y = x Whead + bhead
-  action = y * act_std + act_mean                          (models.normalizer.denormalize_actions)
+  head mean:    a = y [8]
+  head mixture: y = [logits K | means K x 8 | log stds K x 8];  a = means[argmax(logits)]
+                                                          (models.heads.head_action)
+  action = a * act_std + act_mean                          (models.normalizer.denormalize_actions)
 
 Ensembles: every member keeps its own recurrent state and normalizer; the action sent is the
 MEAN of the members' actions (absolute joint targets, after denormalization). `step_members`
@@ -37,6 +40,7 @@ import numpy as np
 
 ACTION_SIZE = 8
 KINDS = ("lstm", "framestack")
+HEADS = ("mean", "mixture")
 _GATES = ("i", "f", "g", "o")          # flax OptimizedLSTMCell order of the gates
 NORM_FIELDS = ("obs_mean", "obs_std", "act_mean", "act_std")
 
@@ -48,15 +52,24 @@ class PolicySpec(NamedTuple):
     layers: int
     obs_size: int
     frame_stack: int
+    head: str = "mean"
+    components: int = 1
 
     @property
     def input_frames(self) -> int:
         return self.frame_stack if self.kind == "framestack" else 1
 
+    @property
+    def head_size(self) -> int:
+        """Outputs of the last layer (models.PolicyConfig.head_size)."""
+        return ACTION_SIZE if self.head == "mean" else self.components * (1 + 2 * ACTION_SIZE)
+
     def check(self) -> "PolicySpec":
         if self.kind not in KINDS:
             raise ValueError(f"policy kind {self.kind!r}; expected one of {KINDS}")
-        for name in ("hidden", "layers", "obs_size", "frame_stack"):
+        if self.head not in HEADS:
+            raise ValueError(f"policy head {self.head!r}; expected one of {HEADS}")
+        for name in ("hidden", "layers", "obs_size", "frame_stack", "components"):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
                 raise ValueError(f"policy {name}={v!r}; expected an integer >= 1")
@@ -82,8 +95,8 @@ def tensor_shapes(spec: PolicySpec, members: int) -> dict[str, tuple]:
             shapes[f"{p}/dense{layer}/kernel"] = (n, fan_in, h)
             shapes[f"{p}/dense{layer}/bias"] = (n, h)
             fan_in = h
-    shapes[f"{p}/head/kernel"] = (n, h, ACTION_SIZE)
-    shapes[f"{p}/head/bias"] = (n, ACTION_SIZE)
+    shapes[f"{p}/head/kernel"] = (n, h, spec.head_size)
+    shapes[f"{p}/head/bias"] = (n, spec.head_size)
     return shapes
 
 
@@ -94,7 +107,7 @@ def check_tensors(spec: PolicySpec, tensors: dict, members: int | None = None) -
         lead = np.shape(tensors.get("net/params/head/bias", ()))
         members = int(lead[0]) if len(lead) == 2 else 0
         if members < 1:
-            raise ValueError("weights lack net/params/head/bias [members, 8]")
+            raise ValueError(f"weights lack net/params/head/bias [members, {spec.head_size}]")
     want = tensor_shapes(spec, members)
     missing, extra = sorted(set(want) - set(tensors)), sorted(set(tensors) - set(want))
     if missing or extra:
@@ -145,6 +158,16 @@ class _Member:
             for layer in range(spec.layers):
                 self.layers.append((f32(f"{p}/dense{layer}/kernel"), f32(f"{p}/dense{layer}/bias")))
         self.head_w, self.head_b = f32(f"{p}/head/kernel"), f32(f"{p}/head/bias")
+        self.components = spec.components if spec.head == "mixture" else 0
+
+    def action(self, y: np.ndarray) -> np.ndarray:
+        """The head's outputs [D] -> the joint targets [8] (models.heads.head_action, then
+        denormalized)."""
+        if self.components:
+            k = self.components
+            best = int(np.argmax(y[:k]))
+            y = y[k + best * ACTION_SIZE:k + (best + 1) * ACTION_SIZE]
+        return y * self.act_std + self.act_mean
 
     def recurrent(self, state: np.ndarray) -> list:
         """Per layer h Wh + b of the state [layers, 2, H]: the part of the next step that does
@@ -176,16 +199,14 @@ class _Member:
             np.tanh(c_new, out=h_new)
             h_new *= _sigmoid(z[3 * hid:], gate)
             x = h_new
-        y = x @ self.head_w + self.head_b
-        return y * self.act_std + self.act_mean
+        return self.action(x @ self.head_w + self.head_b)
 
     def mlp_step(self, frames: np.ndarray) -> np.ndarray:
         """frames [k, O] raw -> action [8]."""
         x = ((frames - self.obs_mean) / self.obs_std).reshape(-1)
         for w, b in self.layers:
             x = np.maximum(x @ w + b, 0.0)
-        y = x @ self.head_w + self.head_b
-        return y * self.act_std + self.act_mean
+        return self.action(x @ self.head_w + self.head_b)
 
 
 class StepPolicy:

@@ -113,8 +113,9 @@ def select_members(tensors: dict, is_ensemble: bool, member: int | None, ensembl
 
 
 def _spec(pcfg) -> PolicySpec:
+    mixture = pcfg.head == "mixture"
     return PolicySpec(pcfg.kind, int(pcfg.hidden), int(pcfg.layers), int(pcfg.obs_size),
-                      int(pcfg.frame_stack))
+                      int(pcfg.frame_stack), pcfg.head, int(pcfg.components) if mixture else 1)
 
 
 def export_tensors(params, pcfg, member: int | None, ensemble: bool) -> tuple[PolicySpec, dict, list]:
@@ -258,6 +259,10 @@ def _policy_section(spec: PolicySpec, n: int, trained_hz: int) -> dict:
     return {"kind": spec.kind, "hidden": spec.hidden, "layers": spec.layers,
             "obs_size": spec.obs_size, "frame_stack": spec.frame_stack,
             "input_frames": spec.input_frames, "members": n,
+            "head": spec.head, "components": spec.components,
+            "head_rule": ("y is the action" if spec.head == "mean" else
+                          "y = [logits K | means K x 8 | log stds K x 8]; the action is the means "
+                          "of the component with the largest logit"),
             "ensemble_rule": ENSEMBLE_RULE if n > 1 else "single member",
             "state": ({"shape": [n, spec.layers, 2, spec.hidden], "dtype": "float32",
                        "layout": "[member, layer, (c, h), hidden]",
@@ -309,6 +314,11 @@ def onnx_graph(spec: PolicySpec, tensors: dict, golden: dict, want: bool | None)
     command if absent), False skips it. The graph is run on the golden frames (onnxruntime, or
     onnx's reference evaluator without it) and refused if it differs from the JAX actions."""
     if want is False:
+        return None, None
+    if spec.head != "mean":
+        if want:
+            raise ExportError(f"policy.onnx is built for the mean head only; this policy's head is "
+                              f"{spec.head!r} (export with --onnx auto or off; the numpy engine plays it)")
         return None, None
     try:
         data = model_bytes(spec, tensors, doc=f"{EXPORT_FORMAT} v{EXPORT_VERSION}: one {spec.kind} step")

@@ -6,20 +6,21 @@
 # confirm.sh once the run has finished. Outputs are named as confirm.sh's, so
 # `python3 scripts/dev/confirm_table.py DIR` reads them; $OUT/confirm.tgz holds them.
 #   SEEDS="3 4" LIMIT=470 bash scripts/dev/gpu_confirm.sh
+# EXTRA: flags added to both presets' training (e.g. EXTRA="--policy.head mixture"); CORES cores a run.
 set -uo pipefail
 if ls .wheels/*.whl >/dev/null 2>&1 && ! python3 -c "import mujoco, brax" 2>/dev/null; then
   python3 -m pip install -q --no-deps --no-index .wheels/*.whl 2>&1 | grep -v -i warn | tail -2
 fi
 export PYTHONPATH=$PWD PYTHONUNBUFFERED=1 JAX_PLATFORMS=cpu CUDA_VISIBLE_DEVICES= TTMJX_JAX_CACHE=$PWD/.jax_cache_cpu
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"; W=${W:-/tmp/confirm}; mkdir -p "$W"
-SEEDS=${SEEDS:-3 4}; LIMIT=${LIMIT:-470}; CORES=${CORES:-4}
+SEEDS=${SEEDS:-3 4}; LIMIT=${LIMIT:-470}; CORES=${CORES:-4}; EXTRA=${EXTRA:-}
 one() {  # variant seed cores
   local v=$1 s=$2 cores=$3 d=$W/$1-s$2
   [ -f "$d.done" ] && return
   if ! python3 -c "import json,sys; sys.exit(0 if json.loads(open('$d.train.json').read().strip().splitlines()[-1]).get('finished') else 1)" 2>/dev/null; then
     echo "=== $v-s$s train $(date +%T)" >>"$OUT/log.txt"
     taskset -c "$cores" timeout -s TERM "$LIMIT" python3 -m ttmjx train --preset "$v" --seed "$s" --run-dir "$d" \
-      --keep-checkpoints 100 --json >"$d.train.json" 2>"$d.train.err"
+      --keep-checkpoints 100 $EXTRA --json >"$d.train.json" 2>"$d.train.err"
     echo "=== $v-s$s trained rc=$? $(date +%T) $(tail -c 200 "$d.train.json")" >>"$OUT/log.txt"
     python3 -c "import json,sys; sys.exit(0 if json.loads(open('$d.train.json').read().strip().splitlines()[-1]).get('finished') else 1)" 2>/dev/null || return
   fi
