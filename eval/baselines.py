@@ -257,18 +257,15 @@ def in_process_scores(cfgs: list, policies: list, finals: list, backend: Backend
 def policy_runs(world, policy, params: list, keys: list, backend: Backend, n_goals: int):
     """eval.evaluate.uniform_runs for any one-member Policy (uniform_runs builds its own from a
     PolicyConfig): run s plays policy with params[s] on the n_goals uniform goals and throws
-    that uniform_run(keys[s]) draws. Returns ([goal_metrics] per run, Trajectories [S, n_goals]).
+    that uniform_runs draws for keys[s]. Returns ([goal_metrics] per run, Trajectories [S, n_goals]).
     tests/test_qtopt.py checks it against uniform_runs."""
-    from eval.evaluate import goal_metrics
+    from eval.evaluate import goal_metrics, split_lanes, uniform_plan
     from ttmjx.world import thrower
-    from ttmjx.world.env import uniform_goals
     stacked = jax.tree.map(lambda *x: jnp.stack([jnp.asarray(a) for a in x]), *params)
-    split = jax.vmap(jax.random.split)
-    k_goal, k_run = jnp.moveaxis(split(jnp.stack(keys)), 1, 0)
-    goals = np.asarray(jax.vmap(lambda k: uniform_goals(k, n_goals, world.table))(k_goal), np.float32)
-    k_throw, k_roll = jnp.moveaxis(split(k_run), 1, 0)
+    goals, k_run = uniform_plan(world, jnp.stack(keys), n_goals)
+    k_throw, k_roll = split_lanes(k_run)
     throws = jax.vmap(lambda k: thrower.sample_throws(k, world, n_goals))(k_throw)
-    tr = backend.rollout_seeds(policy, stacked, k_roll, throws, goals)
+    tr = backend.rollout(policy, stacked, k_roll, throws, goals)
     return [goal_metrics(tr.landing[s], goals[s], tr.hit[s], tr.on_opponent[s]) for s in range(len(goals))], tr
 
 

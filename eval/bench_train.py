@@ -100,7 +100,7 @@ def _bench(name: str, seeds: int, reps: int, demos: int | None, backend: str | N
     throws = pr.round_throws(base, 0)
     goals = jax.vmap(lambda k: uniform_goals(k, m, w.table, cfg.train.practice_goal_margin))(keys)
     policy, params = practice_policy(cfg.policy, cfg.train), acting_params(ck.state)
-    traj = piece("rollout", lambda: be.rollout_seeds(policy, params, keys, throws, goals, cfg.train.members))
+    traj = piece("rollout", lambda: be.rollout(policy, params, keys, throws, goals, members=cfg.train.members))
     append = jax.jit(jax.vmap(lambda c, t: add_episodes(c, t, w.table, cfg.train.practice_keep_margin)))
     cache = piece("relabel_insert", lambda: append(ck.cache, jax.tree.map(jax.numpy.asarray, traj)))
     if pr.train_loop is not None:

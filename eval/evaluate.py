@@ -17,7 +17,7 @@ from models.policy import ensemble_size, make_policy, member
 from training.budget import episodes_that_fit
 from training.checkpoint import load_checkpoint
 from ttmjx.world import thrower
-from ttmjx.world.backends import Backend, resolve_backend
+from ttmjx.world.backends import Backend, lane, lane_of_one, resolve_backend
 from ttmjx.world.config import THROW_DISTRIBUTIONS, World
 from ttmjx.world.env import uniform_goals
 from ttmjx.world.goals import (GOAL_REGIONS, five_goals, goal_metrics, member_success, per_goal_metrics,
@@ -26,21 +26,36 @@ from ttmjx.world.goalspec import GoalSpec, goal_spec
 from ttmjx.world.record import Trajectories
 
 
-def rollout_goals(world: World, pcfg: PolicyConfig, params, backend: Backend, key, goals, members=None,
+def rollout_goals(world: World, pcfg: PolicyConfig, params, backend: Backend, keys, goals, members=None,
                   truth: bool = False):
-    """Trajectories [N] of the policy toward goals [N, 2], one throw each. An ensemble plays in
-    equal blocks: goals and their throws are repeated cyclically up to a multiple of the members
-    and the repeats dropped, so every member count sees the same N goals and throws, once each.
-    truth=True: (Trajectories, TrueTrack) [N], the simulation's true ball and joints beside them
-    (`ttmjx eval --out`; Backend.rollout)."""
+    """Trajectories [L, N] of the policy in L lanes (params leaves [L, ...], keys [L]) toward
+    goals [L, N, 2], one throw each; one run is a lane of one (rollout_goals_one). An ensemble
+    plays in equal blocks: goals and their throws are repeated cyclically up to a multiple of
+    the members and the repeats dropped, so every member count sees the same N goals and
+    throws, once each. truth=True: (Trajectories, TrueTrack) [L, N], the simulation's true ball
+    and joints beside them (`ttmjx eval --out`; Backend.rollout)."""
     goals = np.asarray(goals, np.float32)
-    k_throw, k_roll = jax.random.split(key)
-    th = thrower.sample_throws(k_throw, world, len(goals))
-    idx = padded(np.arange(len(goals)), members)
-    out = backend.rollout(make_policy(pcfg), params, k_roll, jax.tree.map(lambda x: x[idx], th), goals[idx],
+    n = goals.shape[1]
+    k_throw, k_roll = split_lanes(keys)
+    th = jax.vmap(lambda k: thrower.sample_throws(k, world, n))(k_throw)
+    idx = padded(np.arange(n), members)
+    out = backend.rollout(make_policy(pcfg), params, k_roll, jax.tree.map(lambda x: x[:, idx], th), goals[:, idx],
                           members=members, truth=truth)
-    cut = lambda tree: type(tree)(*(x[:len(goals)] for x in tree))  # noqa: E731
+    cut = lambda tree: type(tree)(*(x[:, :n] for x in tree))  # noqa: E731
     return (cut(out[0]), cut(out[1])) if truth else cut(out)
+
+
+def rollout_goals_one(world: World, pcfg: PolicyConfig, params, backend: Backend, key, goals, members=None,
+                      truth: bool = False):
+    """`rollout_goals` of one run, as a lane of one: params, key and goals [N, 2] without the lane
+    axis -> Trajectories [N] (truth=True: and TrueTrack [N])."""
+    return lane(rollout_goals(world, pcfg, lane_of_one(params), backend, lane_of_one(key), lane_of_one(goals),
+                              members, truth))
+
+
+def split_lanes(keys):
+    """Two keys per lane from keys [L]: ([L], [L])."""
+    return tuple(jax.numpy.moveaxis(jax.vmap(jax.random.split)(keys), 1, 0))
 
 
 def padded(goals: np.ndarray, members: int | None) -> np.ndarray:
@@ -50,24 +65,29 @@ def padded(goals: np.ndarray, members: int | None) -> np.ndarray:
     return goals[np.arange(total) % len(goals)]
 
 
-def uniform_run(world: World, pcfg: PolicyConfig, params, backend: Backend, key, n_goals: int = 200,
-                members: int | None = None) -> tuple[dict, Trajectories]:
-    """(goal_metrics, Trajectories [n_goals]) over n_goals uniform goals on the opponent's half."""
-    goals, k_run = uniform_plan(world, key, n_goals)
+def uniform_runs(world: World, pcfg: PolicyConfig, params, backend: Backend, keys, n_goals: int = 200,
+                 members: int | None = None) -> tuple[list[dict], Trajectories]:
+    """L independent uniform evaluations: params leaves [L, ...], keys [L] -> ([goal_metrics] per
+    lane, Trajectories [L, n_goals]) over n_goals uniform goals on the opponent's half, lane l's
+    goals and throws drawn from keys[l] alone (uniform_plan; evaluate_uniform is a lane of one)."""
+    goals, k_run = uniform_plan(world, keys, n_goals)
     tr = rollout_goals(world, pcfg, params, backend, k_run, goals, members)
-    return goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent), tr
+    return [goal_metrics(tr.landing[i], goals[i], tr.hit[i], tr.on_opponent[i]) for i in range(len(goals))], tr
 
 
-def uniform_plan(world: World, key, n_goals: int):
-    """(goals [n_goals, 2] uniform on the opponent's half, the rollout key) of uniform_run's `key`."""
-    k_goal, k_run = jax.random.split(key)
-    return np.asarray(uniform_goals(k_goal, n_goals, world.table), np.float32), k_run
+def uniform_plan(world: World, keys, n_goals: int):
+    """(goals [L, n_goals, 2] uniform on the opponent's half, rollout keys [L]) of uniform_runs'
+    keys [L]."""
+    k_goal, k_run = split_lanes(keys)
+    goals = jax.vmap(lambda k: uniform_goals(k, n_goals, world.table))(k_goal)
+    return np.asarray(goals, np.float32), k_run
 
 
 def evaluate_uniform(world: World, pcfg: PolicyConfig, params, backend: Backend, key, n_goals: int = 200,
                      members: int | None = None) -> dict:
-    """goal_metrics over n_goals uniform goals on the opponent's half."""
-    return uniform_run(world, pcfg, params, backend, key, n_goals, members)[0]
+    """goal_metrics of one run (params and key without the lane axis) over n_goals uniform goals
+    on the opponent's half: uniform_runs on a lane of one."""
+    return uniform_runs(world, pcfg, lane_of_one(params), backend, lane_of_one(key), n_goals, members)[0][0]
 
 
 def five_run(world: World, pcfg: PolicyConfig, params, backend: Backend, key, per_goal: int = 40,
@@ -75,7 +95,7 @@ def five_run(world: World, pcfg: PolicyConfig, params, backend: Backend, key, pe
     """(metrics, Trajectories) of the five-goal protocol: per_goal attempts at each of goals A-E;
     totals plus per goal."""
     goals, names = five_goals(per_goal)
-    tr = rollout_goals(world, pcfg, params, backend, key, goals, members)
+    tr = rollout_goals_one(world, pcfg, params, backend, key, goals, members)
     out = goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent)
     out["per_goal"] = per_goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent, list(names))
     return out, tr
@@ -86,7 +106,7 @@ def goal_set_run(world: World, pcfg: PolicyConfig, params, backend: Backend, key
     """(goal_metrics, Trajectories [N]) of one attempt at each of the user's goals [N, 2]. The
     throws are those of a uniform evaluation of as many goals with the same key."""
     goals, k_run = goal_set_plan(key, goals)
-    tr = rollout_goals(world, pcfg, params, backend, k_run, goals, members)
+    tr = rollout_goals_one(world, pcfg, params, backend, k_run, goals, members)
     return goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent), tr
 
 
@@ -94,23 +114,6 @@ def goal_set_plan(key, goals):
     """(goals [N, 2], the rollout key) of goal_set_run's `key`: the key a uniform evaluation of
     as many goals rolls out with, so a goal file is attempted on its throws."""
     return np.asarray(goals, np.float32), jax.random.split(key)[1]
-
-
-def uniform_runs(world: World, pcfg: PolicyConfig, params, backend: Backend, keys, n_goals: int = 200,
-                 members: int | None = None) -> tuple[list[dict], Trajectories]:
-    """`uniform_run` of S independent runs at once: params leaves [S, ...], keys [S] ->
-    ([goal_metrics] per run, Trajectories [S, n_goals]); run s sees the goals and throws that
-    uniform_run(keys[s]) draws (repeated for an ensemble's equal blocks as in rollout_goals)."""
-    split = jax.vmap(jax.random.split)
-    k_goal, k_run = jax.numpy.moveaxis(split(keys), 1, 0)
-    goals = np.asarray(jax.vmap(lambda k: uniform_goals(k, n_goals, world.table))(k_goal), np.float32)
-    k_throw, k_roll = jax.numpy.moveaxis(split(k_run), 1, 0)
-    th = jax.vmap(lambda k: thrower.sample_throws(k, world, n_goals))(k_throw)
-    idx = padded(np.arange(n_goals), members)
-    tr = backend.rollout_seeds(make_policy(pcfg), params, k_roll, jax.tree.map(lambda x: x[:, idx], th),
-                               goals[:, idx], members=members)
-    tr = Trajectories(*(x[:, :n_goals] for x in tr))
-    return [goal_metrics(tr.landing[s], goals[s], tr.hit[s], tr.on_opponent[s]) for s in range(len(goals))], tr
 
 
 def with_regions(metrics: dict, tr: Trajectories, table, members: int | None = None) -> dict:
@@ -172,7 +175,7 @@ def evaluate_checkpoint(path: str, goals: str = "200", per_goal: int = 40, distr
     key = jax.random.PRNGKey(seed)
     goals, names, k_run = eval_plan(spec, world, key, per_goal)
     # With --out the rollout also carries the true ball (tracks.npz); the record is the same.
-    played = rollout_goals(world, cfg.policy, params, be, k_run, goals, members, truth=out is not None)
+    played = rollout_goals_one(world, cfg.policy, params, be, k_run, goals, members, truth=out is not None)
     tr, true = played if out is not None else (played, None)
     res = goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent)
     if names is not None:
@@ -186,7 +189,7 @@ def evaluate_checkpoint(path: str, goals: str = "200", per_goal: int = 40, distr
 
 def eval_plan(spec: GoalSpec, world: World, key, per_goal: int):
     """(goals [N, 2], their names for 'five' else None, the rollout key) of a parsed --goals value:
-    the goals and keys of uniform_run, five_run and goal_set_run, so `ttmjx eval` scores what
+    the goals and keys of evaluate_uniform, five_run and goal_set_run, so `ttmjx eval` scores what
     they score."""
     if spec.kind == "five":
         goals, names = five_goals(per_goal)
@@ -194,5 +197,5 @@ def eval_plan(spec: GoalSpec, world: World, key, per_goal: int):
     if spec.kind == "points":
         goals, k_run = goal_set_plan(key, spec.goals)
         return goals, None, k_run
-    goals, k_run = uniform_plan(world, key, spec.count or EVAL_UNIFORM_GOALS)
+    goals, k_run = lane(uniform_plan(world, lane_of_one(key), spec.count or EVAL_UNIFORM_GOALS))
     return goals, None, k_run

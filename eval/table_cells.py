@@ -19,13 +19,13 @@ from typing import Any, Callable, NamedTuple
 import jax
 import numpy as np
 
-from eval.evaluate import training_evaluation, uniform_run
+from eval.evaluate import training_evaluation, uniform_runs
 from training.checkpoint import load_checkpoint
 from training.runlog import MetricsLog
 from training.seeds import program_key
 from training.trainer import Run
 from ttmjx.world import files
-from ttmjx.world.backends import Backend, resolve_backend
+from ttmjx.world.backends import Backend, lane, lane_of_one, resolve_backend
 
 # The final evaluation of every cell uses this key: the same goals and throws for every
 # variant and seed, so differences between cells are the policies', not the draws'.
@@ -293,8 +293,9 @@ def final_evaluation(run_dir: str) -> tuple[dict, dict]:
     loaded = load_checkpoint(run_dir)
     cfg = loaded.cfg
     backend = Backend(cfg.world, resolve_backend(cfg.backend))
-    metrics, tr = uniform_run(cfg.world, cfg.policy, loaded.params, backend, jax.random.PRNGKey(FINAL_EVAL_SEED),
-                              cfg.eval_goals, cfg.train.members)
+    metrics, tr = uniform_runs(cfg.world, cfg.policy, lane_of_one(loaded.params), backend,
+                               lane_of_one(jax.random.PRNGKey(FINAL_EVAL_SEED)), cfg.eval_goals, cfg.train.members)
+    metrics, tr = metrics[0], lane(tr)     # a lane of one
     landings = {"goal": np.asarray(tr.goal, np.float64).round(4).tolist(),
                 "landing": np.asarray(tr.landing, np.float64).round(4).tolist(),
                 "hit": np.asarray(tr.hit, bool).tolist(), "on_opponent": np.asarray(tr.on_opponent, bool).tolist()}

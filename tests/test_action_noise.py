@@ -40,8 +40,8 @@ def world():
     goals = np.asarray(uniform_goals(k_goal, N, cfg.world.table), np.float32)
     backend = Backend(cfg.world, "c")
     base = make_policy(cfg.policy)
-    clean = backend.rollout(base, params, k_roll, throws, goals)
-    return params, base, clean, lambda policy: backend.rollout(policy, params, k_roll, throws, goals)
+    clean = backend.rollout_one(base, params, k_roll, throws, goals)
+    return params, base, clean, lambda policy: backend.rollout_one(policy, params, k_roll, throws, goals)
 
 
 def joint_gap(a, b, steps):

@@ -40,7 +40,8 @@ def striker(backend):
     policy, params = demos.source_policy(CFG, "striker")
     throws = thrower.sample_throws(jax.random.PRNGKey(1), CFG, N)
     goals = np.asarray(uniform_goals(jax.random.PRNGKey(2), N, CFG.table))
-    run = lambda g: jax.tree.map(np.asarray, backend.rollout(policy, params, jax.random.PRNGKey(3), throws, g))  # noqa: E731
+    def run(g):
+        return jax.tree.map(np.asarray, backend.rollout_one(policy, params, jax.random.PRNGKey(3), throws, g))
     return run(np.zeros((N, 2), np.float32)), run(goals)
 
 

@@ -89,7 +89,7 @@ def test_shipped_weights_load_without_pickle_and_run_on_c():
     assert isinstance(policy, backends.Policy)
     n = 4
     be = backends.Backend(CFG, "c")
-    traj = be.rollout(policy, params, jax.random.PRNGKey(0), _throws(n), np.zeros((n, 2), np.float32))
+    traj = be.rollout_one(policy, params, jax.random.PRNGKey(0), _throws(n), np.zeros((n, 2), np.float32))
     assert traj.obs.shape == (n, CFG.horizon, 13)
     assert np.all(np.isfinite(traj.actions[traj.valid]))
     lo, hi = np.array(CFG.robot.lower), np.array(CFG.robot.upper)

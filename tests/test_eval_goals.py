@@ -198,24 +198,25 @@ def test_an_ensemble_that_does_not_divide_the_goals_plays_each_goal_and_throw_on
     are dropped; the throws are the ones every member count gets, so a 3-member cell is scored on
     the same goals and throws as a 1- or 10-member cell (a 3-member final evaluation once counted
     goal 0 twice, over 201 throws)."""
-    from eval.evaluate import rollout_goals, uniform_run
+    from eval.evaluate import rollout_goals_one, uniform_runs
     from models.config import PolicyConfig
     from models.normalizer import identity_normalizer
     from models.policy import init_ensemble, member
-    from ttmjx.world.backends import Backend
+    from ttmjx.world.backends import Backend, lane_of_one
     world = World()
     pcfg = PolicyConfig(kind="framestack", hidden=16, layers=2, obs_size=13, frame_stack=8)
     ens = init_ensemble(jax.random.PRNGKey(0), pcfg, identity_normalizer(13), 3)
     backend = Backend(world, "c")
     goals = np.asarray(uniform_goals(jax.random.PRNGKey(1), 4, TABLE), np.float32)
-    three = rollout_goals(world, pcfg, ens, backend, jax.random.PRNGKey(2), goals, members=3)
-    one = rollout_goals(world, pcfg, member(ens, 0), backend, jax.random.PRNGKey(2), goals)
+    three = rollout_goals_one(world, pcfg, ens, backend, jax.random.PRNGKey(2), goals, members=3)
+    one = rollout_goals_one(world, pcfg, member(ens, 0), backend, jax.random.PRNGKey(2), goals)
     assert three.landing.shape == (4, 2) and three.hit.shape == (4,)
     np.testing.assert_array_equal(three.goal, goals)
     np.testing.assert_array_equal(three.launch_pos, one.launch_pos)
     np.testing.assert_array_equal(three.launch_vel, one.launch_vel)
-    metrics, tr = uniform_run(world, pcfg, ens, backend, jax.random.PRNGKey(3), 4, members=3)
-    assert metrics["goals"] == 4 and len(tr.goal) == 4
+    metrics, tr = uniform_runs(world, pcfg, lane_of_one(ens), backend, lane_of_one(jax.random.PRNGKey(3)), 4,
+                               members=3)
+    assert metrics[0]["goals"] == 4 and tr.goal.shape == (1, 4, 2)
 
 
 # -- one --goals grammar for `ttmjx eval` and `ttmjx robot run` (ttmjx.world.goalspec) -----------

@@ -51,8 +51,8 @@ def test_a_batched_rollout_records_what_each_run_records_alone():
     keys = [jax.random.PRNGKey(100 + s) for s in range(2)]
     throws = [thrower.sample_throws(jax.random.PRNGKey(200 + s), cfg.world, b) for s in range(2)]
     goals = [np.asarray(uniform_goals(jax.random.PRNGKey(300 + s), b, cfg.world.table)) for s in range(2)]
-    alone = [be.rollout(pol, params[s], keys[s], throws[s], goals[s], members=n_members) for s in range(2)]
-    together = be.rollout_seeds(pol, stack(params), np.stack([np.asarray(k) for k in keys]), stack(throws),
+    alone = [be.rollout_one(pol, params[s], keys[s], throws[s], goals[s], members=n_members) for s in range(2)]
+    together = be.rollout(pol, stack(params), np.stack([np.asarray(k) for k in keys]), stack(throws),
                                 np.stack(goals), members=n_members)
     for s in range(2):
         for name, x, y in zip(together._fields, together, alone[s]):

@@ -38,7 +38,7 @@ def demos(c_backend, policy):
     for i, name in enumerate(("narrow", "any", "varied")):
         throws = thrower.sample_throws(jax.random.PRNGKey(10 + i), CFG.with_throws(name), N)
         goals = np.zeros((N, 2), np.float32)
-        out[name] = c_backend.rollout(policy, None, jax.random.PRNGKey(20 + i), throws, goals)
+        out[name] = c_backend.rollout_one(policy, None, jax.random.PRNGKey(20 + i), throws, goals)
     return out
 
 
@@ -88,7 +88,7 @@ def test_prediction_matches_the_c_backend(c_backend):
     estimated from two of them)."""
     n = 8
     throws = thrower.sample_throws(jax.random.PRNGKey(3), CFG, n)
-    tr = c_backend.rollout(backends.hold_policy(), None, jax.random.PRNGKey(0), throws,
+    tr = c_backend.rollout_one(backends.hold_policy(), None, jax.random.PRNGKey(0), throws,
                            np.zeros((n, 2), np.float32))
     scfg = striker.StrikerConfig()
     dt, x_plane = CFG.control_dt, -1.5

@@ -140,8 +140,8 @@ def test_both_backends_sense_and_act_under_the_same_timing():
     throws = Throw(f32([[1.7, 0.3, 0.95], [1.9, -0.4, 1.0]]), f32([[-6.5, -0.3, 2.0], [-7.5, 0.3, 0.9]]),
                    f32(np.zeros((2, 3))), f32(np.zeros((2, 2))))
     key, goals = jax.random.key(4), np.zeros((2, 2), np.float32)
-    tc = backends.Backend(cfg, "c").rollout(policy, None, key, throws, goals, horizon=30)
-    tm = backends.Backend(cfg, "mjx").rollout(policy, None, key, throws, goals, horizon=30)
+    tc = backends.Backend(cfg, "c").rollout_one(policy, None, key, throws, goals, horizon=30)
+    tm = backends.Backend(cfg, "mjx").rollout_one(policy, None, key, throws, goals, horizon=30)
     draws = backends.Backend(cfg, "c").timing_draws(key, 2)
     assert len(set(np.asarray(draws.action_delay).round(3).tolist())) == 2      # randomized per episode
     v = tc.valid & np.asarray(tm.valid)

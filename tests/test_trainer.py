@@ -78,11 +78,11 @@ def trained(recorded_tiny_run):
 
 def return_rate(run: Run, params, n: int = 64) -> float:
     """Fraction of n narrow throws the policy returns to the opponent's half (uniform goals)."""
-    from eval.evaluate import rollout_goals
+    from eval.evaluate import rollout_goals_one
     from ttmjx.world.env import uniform_goals
     goals = np.asarray(uniform_goals(jax.random.PRNGKey(11), n, run.cfg.world.table))
-    tr = rollout_goals(run.cfg.world, run.cfg.policy, params, run.backend, jax.random.PRNGKey(12), goals,
-                       members=run.cfg.train.members)
+    tr = rollout_goals_one(run.cfg.world, run.cfg.policy, params, run.backend, jax.random.PRNGKey(12), goals,
+                           members=run.cfg.train.members)
     return float(np.mean(tr.on_opponent))
 
 

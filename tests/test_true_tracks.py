@@ -111,8 +111,8 @@ def test_the_truth_rides_beside_the_record_without_changing_it(cell_run):
     assert world.timing == CELL_TRAINING
     be, policy = Backend(world, "c"), make_policy(loaded.cfg.policy)
     th = thrower.sample_throws(jax.random.PRNGKey(4), world, 4)
-    play = lambda **kw: be.rollout(policy, loaded.params, jax.random.PRNGKey(5), th, np.float32(GOALS),  # noqa: E731
-                                   horizon=60, members=members, **kw)
+    play = lambda **kw: be.rollout_one(policy, loaded.params, jax.random.PRNGKey(5), th,  # noqa: E731
+                                       np.float32(GOALS), horizon=60, members=members, **kw)
     plain, (tr, true) = play(), play(truth=True)
     for f in tr._fields:
         np.testing.assert_array_equal(getattr(tr, f), getattr(plain, f), err_msg=f)

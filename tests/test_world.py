@@ -75,7 +75,7 @@ def test_reset_observation_and_frame_stack_layout(c_backend):
 
 def test_record_frame_stack_matches_state_frames(c_backend):
     th = hand_throws([[1.7, 0.2, 0.95]] * 2, [[-6.5, -0.2, 1.0]] * 2)
-    tr = c_backend.rollout(open_loop_policy(), None, jax.random.PRNGKey(1), th, np.zeros((2, 2)), horizon=12)
+    tr = c_backend.rollout_one(open_loop_policy(), None, jax.random.PRNGKey(1), th, np.zeros((2, 2)), horizon=12)
     stacks = observation.frame_stack(tr.obs, 4)
     assert stacks.shape == (2, 12, 4, 13)
     np.testing.assert_array_equal(stacks[:, 0], np.repeat(tr.obs[:, :1], 4, 1))  # padded with frame 0
@@ -91,14 +91,14 @@ def test_ball_velocity_observation_has_16_values():
     f = np.asarray(env.observe(cfg, be.lay, jax.tree.map(lambda x: x[0], s)).frame)
     assert f.shape == (16,)
     np.testing.assert_allclose(f[11:14], [-6.5, -0.2, 1.0], atol=1e-6)
-    tr = be.rollout(backends.hold_policy(), None, jax.random.PRNGKey(0), th, np.zeros((1, 2)), horizon=5)
+    tr = be.rollout_one(backends.hold_policy(), None, jax.random.PRNGKey(0), th, np.zeros((1, 2)), horizon=5)
     assert tr.obs.shape == (1, 5, 13)  # the record always keeps 13 + ball_vel separately
 
 
 def test_events_unreturned_throw_bounces_on_robot_side_and_ends(c_backend):
     # Aimed wide of the robot: bounces on the robot's half, never touched, falls off the table.
     th = hand_throws([1.7, 0.6, 0.95], [-6.5, 0.0, 2.0])
-    tr = c_backend.rollout(backends.hold_policy(), None, jax.random.PRNGKey(0), th, np.zeros((1, 2)))
+    tr = c_backend.rollout_one(backends.hold_policy(), None, jax.random.PRNGKey(0), th, np.zeros((1, 2)))
     assert bool(tr.bounce_own[0]) and not bool(tr.hit[0]) and not bool(tr.net[0])
     assert tr.hit_step[0] == -1 and np.all(np.isnan(tr.landing[0])) and not tr.on_opponent[0]
     n = int(tr.valid[0].sum())
@@ -108,7 +108,7 @@ def test_events_unreturned_throw_bounces_on_robot_side_and_ends(c_backend):
 
 def test_events_net_ball(c_backend):
     th = hand_throws([1.7, 0.0, 0.85], [-7.0, 0.0, 0.3])  # too low: hits the net
-    tr = c_backend.rollout(backends.hold_policy(), None, jax.random.PRNGKey(0), th, np.zeros((1, 2)))
+    tr = c_backend.rollout_one(backends.hold_policy(), None, jax.random.PRNGKey(0), th, np.zeros((1, 2)))
     assert bool(tr.net[0]) and not bool(tr.hit[0]) and not bool(tr.bounce_own[0])
     assert np.all(tr.obs[0, tr.valid[0], 8] > -0.05)  # never got through to the robot's side
 
@@ -121,7 +121,7 @@ def paddle_shot(velocity):
 
 
 def test_events_hit_and_landing_on_opponent_half(c_backend):
-    tr = c_backend.rollout(backends.hold_policy(), None, jax.random.PRNGKey(0),
+    tr = c_backend.rollout_one(backends.hold_policy(), None, jax.random.PRNGKey(0),
                            paddle_shot([3.2, 0.0, 0.0]), np.zeros((1, 2)))
     assert bool(tr.hit[0]) and 0 <= tr.hit_step[0] <= 5
     assert bool(tr.on_opponent[0]) and not bool(tr.net[0])
@@ -133,7 +133,7 @@ def test_events_hit_and_landing_on_opponent_half(c_backend):
 
 
 def test_events_hit_ball_that_misses_the_table_gets_a_fall_point(c_backend):
-    tr = c_backend.rollout(backends.hold_policy(), None, jax.random.PRNGKey(0),
+    tr = c_backend.rollout_one(backends.hold_policy(), None, jax.random.PRNGKey(0),
                            paddle_shot([3.0, 2.5, 0.0]), np.zeros((1, 2)))
     assert bool(tr.hit[0]) and not bool(tr.on_opponent[0])
     x, y = tr.landing[0]
@@ -186,9 +186,9 @@ def test_simulated_joints_respect_speed_limits_and_ranges(c_backend):
 
 def test_determinism_per_seed(c_backend):
     th = hand_throws([[1.7, 0.2, 0.95]] * 3, [[-6.5, -0.2, 1.0]] * 3)
-    a = c_backend.rollout(open_loop_policy(), None, jax.random.PRNGKey(7), th, np.zeros((3, 2)), horizon=40)
-    b = c_backend.rollout(open_loop_policy(), None, jax.random.PRNGKey(7), th, np.zeros((3, 2)), horizon=40)
-    c = c_backend.rollout(open_loop_policy(), None, jax.random.PRNGKey(8), th, np.zeros((3, 2)), horizon=40)
+    a = c_backend.rollout_one(open_loop_policy(), None, jax.random.PRNGKey(7), th, np.zeros((3, 2)), horizon=40)
+    b = c_backend.rollout_one(open_loop_policy(), None, jax.random.PRNGKey(7), th, np.zeros((3, 2)), horizon=40)
+    c = c_backend.rollout_one(open_loop_policy(), None, jax.random.PRNGKey(8), th, np.zeros((3, 2)), horizon=40)
     for f in record.Trajectories._fields:
         np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
     assert not np.array_equal(a.obs[:, 0, :8], c.obs[:, 0, :8])  # a different seed perturbs home
@@ -201,9 +201,9 @@ def test_a_new_backend_of_the_same_world_runs_what_the_first_compiled(c_backend,
     import logging
     policy, goals = open_loop_policy(), np.zeros((2, 2))
     th = hand_throws([[1.7, 0.2, 0.95]] * 2, [[-6.5, -0.2, 1.0]] * 2)
-    a = c_backend.rollout(policy, None, jax.random.PRNGKey(3), th, goals, horizon=20)
+    a = c_backend.rollout_one(policy, None, jax.random.PRNGKey(3), th, goals, horizon=20)
     with caplog.at_level(logging.DEBUG, logger="jax._src.interpreters.pxla"):
-        b = backends.Backend(CFG, "c").rollout(policy, None, jax.random.PRNGKey(3), th, goals, horizon=20)
+        b = backends.Backend(CFG, "c").rollout_one(policy, None, jax.random.PRNGKey(3), th, goals, horizon=20)
     compiled = [r.getMessage()[:80] for r in caplog.records if r.getMessage().startswith("Compiling ")]
     assert compiled == []
     for f in record.Trajectories._fields:
@@ -219,7 +219,7 @@ def test_compiled_rollouts_kept_are_the_most_recently_used():
 
 
 def paddle_pose_at_reset(backend, key, n):
-    """Blade centre and normal [n, 3] of the perturbed home poses `backend.rollout(key)` resets to."""
+    """Blade centre and normal [n, 3] of the perturbed home poses `backend.rollout_one(key)` resets to."""
     k_reset = jax.random.split(key, 3)[0]
     dummy = hand_throws([[1.7, 0.0, 0.95]] * n, [[-6.5, 0.0, 2.0]] * n)
     s = backend.reset(k_reset, dummy, np.zeros((n, 2)))
@@ -249,8 +249,8 @@ def test_backend_parity_positions_and_events(c_backend, mjx_backend):
     goals = np.zeros((7, 2), np.float32)
     horizon = int(1.0 * CFG.control_hz)
     policy = open_loop_policy(amplitude=0.01)
-    tc = c_backend.rollout(policy, None, key, throws, goals, horizon=horizon)
-    tm = mjx_backend.rollout(policy, None, key, throws, goals, horizon=horizon)
+    tc = c_backend.rollout_one(policy, None, key, throws, goals, horizon=horizon)
+    tm = mjx_backend.rollout_one(policy, None, key, throws, goals, horizon=horizon)
     # An episode ends when the ball crosses a height; positions 1 cm apart can put that instant
     # on either side of a 10 ms tick, so the ends may differ by one control step.
     assert np.abs(tc.valid.sum(1) - np.asarray(tm.valid).sum(1)).max() <= 1
@@ -300,7 +300,7 @@ def test_other_control_rates_run_the_same_task(hz):
     be = backends.Backend(cfg, "c")
     pos, normal = paddle_pose(cfg)
     th = hand_throws(pos + 0.1 * normal, np.array([3.2, 0.0, 0.0]) - 2.5 * normal)
-    tr = be.rollout(backends.hold_policy(), None, jax.random.PRNGKey(0), th, np.zeros((1, 2)))
+    tr = be.rollout_one(backends.hold_policy(), None, jax.random.PRNGKey(0), th, np.zeros((1, 2)))
     assert tr.obs.shape == (1, cfg.horizon, 13) and cfg.horizon == round(cfg.episode_s * hz)
     assert bool(tr.hit[0]) and np.isfinite(tr.landing[0]).all()
 

@@ -225,7 +225,7 @@ def bootstrap_normalizer(cfg: RunConfig, backend: Backend, key) -> Normalizer:
     params = init_params(jax.random.fold_in(key, 2), cfg.policy, identity_normalizer(cfg.policy.obs_size))
     n = 64
     th = thrower.sample_throws(jax.random.fold_in(key, 3), cfg.world, n)
-    traj = backend.rollout(make_policy(cfg.policy), params, jax.random.fold_in(key, 4), th,
+    traj = backend.rollout_one(make_policy(cfg.policy), params, jax.random.fold_in(key, 4), th,
                            np.asarray(uniform_goals(jax.random.fold_in(key, 5), n, cfg.world.table)))
     obs = observation.to_width(jnp.asarray(traj.obs), cfg.policy.obs_size, jnp.asarray(traj.ball_vel), xp=jnp)
     # Actions of an untrained net carry no scale: use the joint ranges' spread instead.

@@ -236,7 +236,7 @@ class Practice:
         parts = pure._replace(
             goals=self.lanes(jax.vmap(pure.goals)), append=self.lanes(jax.vmap(pure.append)), train=self.train,
             frontier=pure.frontier and self.lanes(jax.vmap(pure.frontier)),
-            rollout=lambda p, k, th, g: backend.rollout_seeds(policy, p, k, th, g, members=members))
+            rollout=lambda p, k, th, g: backend.rollout(policy, p, k, th, g, members=members))
         return lambda s, c, k, th, n, kn: practice_round(parts, s, c, k, th, n, self.world.table, seeds=True,
                                                          knobs=kn)
 

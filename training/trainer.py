@@ -8,7 +8,7 @@ training.update) and, with the same schedule, in the demonstrations they start f
 (training.seeds.program_key). Every array of their state (weights, optimizer states, moving
 averages, caches, keys, counters) is stacked on a leading [L] axis, and each compiled piece of
 training (the practice round, the update loop, the throw sampler, the evaluation rollout) is the
-one-run piece vmapped over that axis (training.practice, Backend.rollout_seeds). Lane k is the
+one-run piece vmapped over that axis (training.practice, Backend.rollout). Lane k is the
 same experiment as that run alone: the same demonstrations, throws, goals, initial weights and
 random draws (tests/test_seeds.py, tests/test_lanes.py). A lane that does not practise plays each
 round and keeps nothing, so it trains as LFP's train-only rounds do.

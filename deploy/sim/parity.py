@@ -109,7 +109,7 @@ def world_play(loaded: Loaded, tm: Timing, backend: str, n: int, seed: int) -> W
     k_throw, k_roll = jax.random.split(k_run)
     throws = thrower.sample_throws(k_throw, cfg, n)
     world = Backend(cfg, backend)
-    tr = world.rollout(averaged(make_policy(pcfg)), params, k_roll, throws, goals)
+    tr = world.rollout_one(averaged(make_policy(pcfg)), params, k_roll, throws, goals)
     draws = jax.tree.map(np.asarray, world.timing_draws(k_roll, n))
     return WorldPlay(goals, throws, jax.tree.map(np.asarray, tr), draws)
 

@@ -1,6 +1,6 @@
 """The same policy, goals and throws played by evaluation and by the robot runner.
 
-(a) `ttmjx eval`'s rollout (eval.evaluate.rollout_goals on ttmjx.world.backends.Backend("c")) of
+(a) `ttmjx eval`'s rollout (eval.evaluate.rollout_goals_one on ttmjx.world.backends.Backend("c")) of
 one member of a run's moving-average policy toward N uniform goals (the draw of
 `ttmjx eval RUN --goals N --member M --seed S`); (b) that member exported and played by
 deploy.robot.runner.Runner on the simulated station (deploy.sim.station) toward the same goals, on the
@@ -32,7 +32,7 @@ from deploy.robot.exported import export_world, load_export
 from deploy.robot.runner import Runner
 from deploy.sim.export import export
 from deploy.sim.station import TIMING, SimClock, SimStation, goal_summary, play
-from eval.evaluate import rollout_goals
+from eval.evaluate import rollout_goals_one
 from models.policy import member
 from training.checkpoint import load_checkpoint
 from ttmjx.world import files, thrower
@@ -53,8 +53,8 @@ def evaluation(run: str, member_index: int, n: int, seed: int, timing=None):
         cfg = dataclasses.replace(cfg, world=dataclasses.replace(cfg.world, timing=timing))
     k_goal, k_run = jax.random.split(jax.random.PRNGKey(seed))
     goals = np.asarray(uniform_goals(k_goal, n, cfg.world.table), np.float32)
-    tr = rollout_goals(cfg.world, cfg.policy, params, Backend(cfg.world, "c"), k_run, goals)
-    throws = thrower.sample_throws(jax.random.split(k_run)[0], cfg.world, n)   # rollout_goals' throws
+    tr = rollout_goals_one(cfg.world, cfg.policy, params, Backend(cfg.world, "c"), k_run, goals)
+    throws = thrower.sample_throws(jax.random.split(k_run)[0], cfg.world, n)   # rollout_goals_one's throws
     return cfg, params, goals, throws, tr
 
 

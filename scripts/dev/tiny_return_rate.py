@@ -15,7 +15,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "tests"))
 from recorded import tiny_recorded  # noqa: E402
 
-from eval.evaluate import rollout_goals  # noqa: E402
+from eval.evaluate import rollout_goals_one  # noqa: E402
 from training import checkpoint  # noqa: E402
 from training.trainer import Run  # noqa: E402
 from training.update import acting_params  # noqa: E402
@@ -31,6 +31,6 @@ run = Run(cfg, progress=False)
 for name, params in (("untrained", run.runs[0].initial().state.params),
                      ("trained", acting_params(checkpoint.load_checkpoint(a.run_dir).ck.state))):
     goals = np.asarray(uniform_goals(jax.random.PRNGKey(31), a.n, cfg.world.table))
-    tr = rollout_goals(cfg.world, cfg.policy, params, run.backend, jax.random.PRNGKey(32), goals,
-                       members=cfg.train.members)
+    tr = rollout_goals_one(cfg.world, cfg.policy, params, run.backend, jax.random.PRNGKey(32), goals,
+                           members=cfg.train.members)
     print(f"{name}: returned {np.mean(tr.on_opponent):.1%} of {a.n} narrow throws", flush=True)

@@ -42,13 +42,13 @@ def task_rate(cfg: World, backend: str, batch: int, repeats: int = 2, nthread: i
     th = _throws(cfg, batch, 0)
     goals = np.zeros((batch, 2), np.float32)
     t0 = time.perf_counter()
-    tr = be.rollout(policy, None, jax.random.PRNGKey(0), th, goals)
+    tr = be.rollout_one(policy, None, jax.random.PRNGKey(0), th, goals)
     jax.block_until_ready(tr.obs)
     first = time.perf_counter() - t0
     times, steps = [], 0
     for r in range(repeats):
         t0 = time.perf_counter()
-        tr = be.rollout(policy, None, jax.random.PRNGKey(r + 1), th, goals)
+        tr = be.rollout_one(policy, None, jax.random.PRNGKey(r + 1), th, goals)
         jax.block_until_ready(tr.obs)
         times.append(time.perf_counter() - t0)
     # A host backend stops once every throw has ended; a traceable one runs the full horizon.

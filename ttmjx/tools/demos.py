@@ -240,8 +240,8 @@ def collect(cfg: World, source: str, n: int, seed: int, backend: str = "c", chun
     for start in range(0, n, chunk):
         m = min(chunk, n - start)
         k_roll, th = chunk_draws(cfg, seed, start, m)
-        out = jax.tree.map(np.asarray, be.rollout(policy, params, k_roll, th, np.zeros((m, 2), np.float32),
-                                                  truth=truth))
+        out = jax.tree.map(np.asarray, be.rollout_one(policy, params, k_roll, th, np.zeros((m, 2), np.float32),
+                                                      truth=truth))
         parts.append(out[0] if truth else out)
         if truth:
             truths.append(out[1])
@@ -264,9 +264,10 @@ def collect_lanes(cfg: World, source: str, n: int, seeds: list[int], backend: st
                   progress: bool = False, place=None, devices: int = 1) -> list:
     """`collect(cfg, source, n, seed, backend)` for several seeds at once -> [S] records, record
     s with the draws of `collect(..., seeds[s])` (the same chunks, keys and throws; on MuJoCo C
-    the same records, on MJX the same up to the vmapped float32 arithmetic, which the contact can
-    carry to a few cm of landing), played together by `Backend.rollout_seeds`: the setup of a table's lanes is then one rollout per
-    chunk, not one per lane. As many seeds share a call as fit the backend's demonstration chunk
+    the same records, on MJX the same up to float32 arithmetic batched differently, which the
+    contact can carry to a few cm of landing), played together as the lanes of one
+    `Backend.rollout` (collect plays a lane of one): the setup of a table's lanes is then one
+    rollout per chunk, not one per lane. As many seeds share a call as fit the backend's demonstration chunk
     on each of `devices` devices; on MJX `place` (a tree [S, ...] -> the same laid over the
     devices, training.seeds) splits a call's seeds over them, a group padded to the devices with
     copies of its last seed (computed, dropped)."""
@@ -291,8 +292,8 @@ def collect_lanes(cfg: World, source: str, n: int, seeds: list[int], backend: st
             m = min(chunk, n - start)
             draws = [chunk_draws(cfg, s, start, m) for s in played]
             th = jax.tree.map(lambda *xs: jnp.stack(xs), *[d[1] for d in draws])
-            rec = be.rollout_seeds(policy, lanes, lay(jnp.stack([d[0] for d in draws])), lay(th),
-                                   lay(jnp.zeros((width, m, 2), jnp.float32)))
+            rec = be.rollout(policy, lanes, lay(jnp.stack([d[0] for d in draws])), lay(th),
+                             lay(jnp.zeros((width, m, 2), jnp.float32)))
             parts.append(jax.tree.map(np.asarray, rec))
             bar.update(m * len(group))
         out += [record.concat([jax.tree.map(lambda x: x[i], p) for p in parts]) for i in range(len(group))]

@@ -398,7 +398,7 @@ def evaluate(cfg: World, policy, params, throws, seed: int = 0, backend="c", pad
     """Hit and return rates (and the mean shaped reward) of one policy on a batch of throws."""
     be = backend if isinstance(backend, backends.Backend) else backends.Backend(cfg, backend)
     n = np.shape(throws.launch_pos)[0]
-    traj = be.rollout(policy, params, jax.random.PRNGKey(seed), throws, np.zeros((n, 2), np.float32))
+    traj = be.rollout_one(policy, params, jax.random.PRNGKey(seed), throws, np.zeros((n, 2), np.float32))
     r = shaped_reward(traj, paddle or Paddle(cfg), reward)
     return {"n": int(n), "hit_rate": float(np.mean(traj.hit)), "return_rate": float(np.mean(traj.on_opponent)),
             "reward": float(np.mean(r["reward"])), "closest": float(np.mean(r["closest"])),
@@ -449,7 +449,7 @@ def train_es(cfg: World, generations: int, population: int, seed: int, backend: 
     def fitness(thetas, gen):
         idx = rng.choice(pool, k, replace=False)
         th = _take(throw_pool, np.tile(idx, population))
-        traj = be.rollout(pop_policy, thetas, jax.random.fold_in(k_es, 10_000 + gen), th, goals)
+        traj = be.rollout_one(pop_policy, thetas, jax.random.fold_in(k_es, 10_000 + gen), th, goals)
         r = shaped_reward(traj, paddle, reward)
         last.update({kk: np.asarray(v, np.float64).reshape(population, k).mean(1) for kk, v in r.items()})
         return last["reward"]

@@ -110,7 +110,7 @@ def render_throws(cfg: World, path: str, n: int = 3, seed: int = 0, source: str 
     key = jax.random.PRNGKey(seed)
     th = thrower.sample_throws(key, cfg, n)
     be = backends.Backend(cfg, "c")
-    traj, true = be.rollout(policy_for(cfg, source), None, key, th, np.zeros((n, 2), np.float32), truth=True)
+    traj, true = be.rollout_one(policy_for(cfg, source), None, key, th, np.zeros((n, 2), np.float32), truth=True)
     frames = frames_of(cfg, traj, true=true)
     imgs = [Image.fromarray(f) for f in frames]
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)

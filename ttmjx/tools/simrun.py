@@ -18,7 +18,7 @@ def run(cfg: World, backend: str, n: int, seed: int) -> dict:
     t0 = time.perf_counter()
     be = backends.Backend(cfg, backend)
     th = thrower.sample_throws(key, cfg, n)
-    traj = be.rollout(striker.striker_policy(cfg), None, key, th, np.zeros((n, 2), np.float32))
+    traj = be.rollout_one(striker.striker_policy(cfg), None, key, th, np.zeros((n, 2), np.float32))
     hit = np.asarray(traj.hit)
     return {"backend": backend, "distribution": cfg.throws.name, "throws": n,
             "hit_rate": float(hit.mean()), "return_rate": float(np.asarray(traj.on_opponent).mean()),

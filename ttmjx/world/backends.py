@@ -307,48 +307,42 @@ class Backend:
         return (*out, cmds)
 
     # -- rollouts ------------------------------------------------------------------------
-    def rollout(self, policy: Policy, params, key, throws, goals, horizon: int | None = None,
+    def rollout(self, policy: Policy, params, keys, throws, goals, horizon: int | None = None,
                 members: int | None = None, truth: bool = False):
-        """Roll `policy` out on B throws toward goals [B, 2]; returns the trajectory record
-        with T = horizon (default cfg.horizon) steps.
+        """Roll `policy` out in L independent lanes of B throws: params leaves [L, ...], keys [L]
+        (one rollout key per lane), throws [L, B, ...], goals [L, B, 2] -> Trajectories
+        [L, B, ...] with T = horizon (default cfg.horizon) steps. One run is a lane of one
+        (rollout_one).
 
-        members=N: params carry a leading ensemble axis [N, ...]; throw b is played by member
-        b // (B / N) (B must be a multiple of N).
+        Lane l gets exactly the draws and record it gets alone: on MJX the one-lane rollout
+        (rollout_fn) is vmapped over lanes; on MuJoCo C the L x B throws step together through
+        one host loop (one thread pool, one policy call per control step).
 
-        truth=True: (record, TrueTrack), the simulation's true ball and joints beside what the
-        policy observed (evaluation and recording paths; the same draws and record)."""
-        b = np.shape(throws.launch_pos)[0]
-        goals = env.check_goals(goals, b)
-        if members and b % members:
-            raise ValueError(f"{b} throws cannot be split evenly over {members} ensemble members")
+        members=N: params carry an ensemble axis [L, N, ...]; throw b of a lane is played by
+        member b // (B / N) (B must be a multiple of N).
+
+        truth=True: (record, TrueTrack [L, B, ...]), the simulation's true ball and joints beside
+        what the policy observed (evaluation and recording paths; the same draws and record)."""
+        goals = _check_lanes(throws, goals, members)
         t_max = horizon or self.cfg.horizon
         if self.kind.traceable:
-            key_ = ("mjx", policy, t_max, members) + (("truth",) if truth else ())
+            key_ = ("mjx", policy, t_max, members, truth)
             if key_ not in self._rollouts:
-                self._rollouts[key_] = jax.jit(self.rollout_fn(policy, t_max, members, truth))
-            return self._rollouts[key_](params, key, throws, jnp.asarray(goals))
-        return self._c_rollout(policy, params, key, throws, goals, t_max, members, truth=truth)
+                self._rollouts[key_] = jax.jit(jax.vmap(self.rollout_fn(policy, t_max, members, truth)))
+            return self._rollouts[key_](params, keys, throws, jnp.asarray(goals))
+        return self._c_rollout(policy, params, keys, throws, goals, t_max, members, truth)
 
-    def rollout_seeds(self, policy: Policy, params, keys, throws, goals, members: int | None = None) -> Trajectories:
-        """`rollout` of S independent runs at once: params leaves [S, ...], keys [S] (one rollout
-        key per run), throws [S, B, ...], goals [S, B, 2] -> Trajectories [S, B, ...].
-
-        Run s gets exactly the draws `rollout(policy, params[s], keys[s], throws[s], goals[s])`
-        gets: on MJX the rollout is vmapped over runs; on MuJoCo C the S x B throws step
-        together through one host loop (one thread pool, one policy call per control step)."""
-        s, b = np.shape(goals)[:2]
-        if members and b % members:
-            raise ValueError(f"{b} throws cannot be split evenly over {members} ensemble members")
-        if self.kind.traceable:
-            key_ = ("mjx-seeds", policy, self.cfg.horizon, members)
-            if key_ not in self._rollouts:
-                self._rollouts[key_] = jax.jit(jax.vmap(self.rollout_fn(policy, self.cfg.horizon, members)))
-            return self._rollouts[key_](params, keys, throws, jnp.asarray(goals, jnp.float32))
-        return self._c_rollout(policy, params, keys, throws, goals, self.cfg.horizon, members, seeds=s)
+    def rollout_one(self, policy: Policy, params, key, throws, goals, horizon: int | None = None,
+                    members: int | None = None, truth: bool = False):
+        """`rollout` of one run, as a lane of one: params, key, throws [B, ...] and goals [B, 2]
+        without the lane axis -> Trajectories [B, ...] (truth=True: and TrueTrack [B, ...])."""
+        out = self.rollout(policy, lane_of_one(params), lane_of_one(key), lane_of_one(throws),
+                           lane_of_one(goals), horizon, members, truth)
+        return lane(out)
 
     def timing_draws(self, key, b: int):
-        """The per-episode timing (ttmjx.world.timing.Draw, [B] fields) that rollout(key) on B
-        throws draws: to line a station up with a rollout (tests/test_timing.py)."""
+        """The per-episode timing (ttmjx.world.timing.Draw, [B] fields) that a lane with rollout
+        key `key` draws for its B throws: to line a station up with a rollout (tests/test_timing.py)."""
         keys, _, _ = _episode_keys(key, b)
         return jax.vmap(lambda k: timing.draw(self.cfg, env.timing_key(k)))(keys)
 
@@ -369,30 +363,28 @@ class Backend:
             return carry, obs, self._command(states, action)
         return act
 
-    def _c_rollout(self, policy, params, key, throws, goals, t_max, members, seeds: int | None = None,
-                   truth: bool = False):
-        """The host loop. With `seeds`=S, params [S, ...], key [S], throws and goals [S, B, ...]:
-        the compiled steps are vmapped over runs and the physics steps all S x B throws at once.
-        truth (not with seeds): also the TrueTrack, kept on the host (no compiled program changes)."""
-        ck = ("c", policy, members, seeds)
+    def _c_rollout(self, policy, params, keys, throws, goals, t_max, members, truth: bool = False):
+        """The host loop over lanes: params [L, ...], keys [L], throws and goals [L, B, ...]. The
+        compiled one-lane steps are vmapped over lanes; the physics steps all L x B throws at once.
+        truth: also the TrueTrack, kept on the host (no compiled program changes)."""
+        lanes, b = np.shape(goals)[:2]
+        # XLA compiles a vmap over one lane apart from the one-lane function, and for some
+        # policies it rounds differently: a lane of one runs the one-lane function itself, so a
+        # single run records what it recorded before lanes (tests/test_lanes.py, collect_lanes).
+        over = _on_one_lane if lanes == 1 else (lambda f: jax.jit(jax.vmap(f)))
+        ck = ("c", policy, members, lanes == 1)
         if ck not in self._rollouts:
             init_b, _ = batched_policy(policy, members)
-            act, reset = self._act_fn(policy, members), self._reset_keys
-            if seeds:   # the same per-run functions, vmapped over the leading run axis
-                init_b, act, reset = jax.vmap(init_b), jax.vmap(act), jax.vmap(reset)
-            self._rollouts[ck] = (jax.jit(init_b), jax.jit(act), jax.jit(reset))
+            act = self._act_fn(policy, members)
+            self._rollouts[ck] = tuple(over(f) for f in (init_b, act, self._reset_keys))
         init, act, reset = self._rollouts[ck]
         f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-        states, k_init, k_act = reset(key, jax.tree.map(f32, throws), f32(goals))
-        lead = np.shape(goals)[:-1]                      # (B,) or (S, B)
-        split = jax.vmap(jax.random.split, in_axes=(0, None)) if seeds else jax.random.split
-        fold = jax.vmap(jax.random.fold_in, in_axes=(0, None)) if seeds else jax.random.fold_in
-        if seeds:   # [S, B, ...] <-> [S * B, ...] (typed PRNG keys among the leaves: reshape, no numpy)
-            flat = lambda tree: jax.tree.map(lambda x: x.reshape((-1,) + x.shape[len(lead):]), tree)  # noqa: E731
-            unflat = lambda tree: jax.tree.map(lambda x: x.reshape(lead + x.shape[1:]), tree)  # noqa: E731
-        else:
-            flat = unflat = lambda tree: tree  # noqa: E731
-        carry = init(params, split(k_init, lead[-1]))
+        states, k_init, k_act = reset(keys, jax.tree.map(f32, throws), f32(goals))
+        # [L, B, ...] <-> [L * B, ...] (typed PRNG keys among the leaves: reshape, no numpy)
+        flat = lambda tree: jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), tree)  # noqa: E731
+        unflat = lambda tree: jax.tree.map(lambda x: x.reshape((lanes, b) + x.shape[1:]), tree)  # noqa: E731
+        fold = jax.vmap(jax.random.fold_in, in_axes=(0, None))
+        carry = init(params, jax.vmap(jax.random.split, in_axes=(0, None))(k_init, b))
         frames, vels, actions, valids, qposs, balls = [], [], [], [], [], []
         flat_states = flat(states)
         for t in range(t_max):
@@ -405,19 +397,17 @@ class Backend:
             if truth:
                 qposs.append(np.asarray(flat_states.qpos)), balls.append(np.asarray(out[2])[..., :3])
             flat_states = self._advance(flat_states, target, *out)
-            states = unflat(flat_states) if seeds else flat_states
+            states = unflat(flat_states)
             if not valid.any():
                 break
         pad = t_max - len(frames)
         stack = lambda xs: np.concatenate([np.stack([np.asarray(x) for x in xs], 1),  # noqa: E731
                                            np.repeat(np.asarray(xs[-1])[:, None], pad, 1)], 1)
         valid_arr = np.concatenate([np.stack(valids, 1), np.zeros((len(valids[0]), pad), bool)], 1)
-        per_step = [stack(frames), stack(vels), stack(actions)]
-        if seeds:
-            per_step = [_as_if_alone(x, valid_arr, seeds) for x in per_step]
-        rec = _record(self.cfg, self.lay, flat_states, *per_step, valid_arr)
-        rec = jax.tree.map(np.asarray, unflat(rec) if seeds else rec)
-        return (rec, _true_track(self.lay, stack(qposs), stack(balls), np)) if truth else rec
+        alone = lambda xs: _as_if_alone(stack(xs), valid_arr, lanes)  # noqa: E731
+        rec = _record(self.cfg, self.lay, flat_states, alone(frames), alone(vels), alone(actions), valid_arr)
+        rec = jax.tree.map(np.asarray, unflat(rec))
+        return (rec, unflat(_true_track(self.lay, alone(qposs), alone(balls), np))) if truth else rec
 
     def rollout_fn(self, policy: Policy, t_max: int | None = None, members: int | None = None,
                    truth: bool = False):
@@ -452,16 +442,44 @@ class Backend:
         return run
 
 
-def _as_if_alone(x, valid, seeds: int):
-    """Per-step values [S * B, T, ...] of runs stepped together, as each run alone records them:
-    a run alone stops at its first step with no valid throw and repeats that step's values to
+def _as_if_alone(x, valid, lanes: int):
+    """Per-step values [L * B, T, ...] of lanes stepped together, as each lane alone records them:
+    a lane alone stops at its first step with no valid throw and repeats that step's values to
     the horizon (invalid steps, but kept in the cache: identical data whatever runs beside it)."""
     t_max = valid.shape[1]
-    live = valid.reshape(seeds, -1, t_max).any(1)                     # [S, T]
-    end = np.where(live.all(1), t_max - 1, np.argmin(live, 1))        # [S] last recorded step
-    idx = np.minimum(np.arange(t_max)[None], end[:, None])            # [S, T]
-    idx = np.repeat(idx, valid.shape[0] // seeds, 0)                  # [S * B, T]
+    live = valid.reshape(lanes, -1, t_max).any(1)                     # [L, T]
+    end = np.where(live.all(1), t_max - 1, np.argmin(live, 1))        # [L] last recorded step
+    idx = np.minimum(np.arange(t_max)[None], end[:, None])            # [L, T]
+    idx = np.repeat(idx, valid.shape[0] // lanes, 0)                  # [L * B, T]
     return np.take_along_axis(x, idx.reshape(idx.shape + (1,) * (x.ndim - 2)), 1)
+
+
+def _on_one_lane(f):
+    """jit(f) on a lane axis of one, without vmap: the lane taken off the arguments and put back
+    on the results outside the compiled program (the program is f's own)."""
+    g = jax.jit(f)
+    return lambda *args: jax.tree.map(lambda x: x[None], g(*lane(args)))
+
+
+def _check_lanes(throws, goals, members: int | None) -> np.ndarray:
+    """goals [L, B, 2] checked against throws [L, B, ...] and the ensemble's equal blocks
+    (ValueError naming the problem) -> float32 [L, B, 2]."""
+    lanes, b = np.shape(throws.launch_pos)[:2]
+    if np.shape(goals)[:2] != (lanes, b):
+        raise ValueError(f"goals of shape {np.shape(goals)}; expected [{lanes}, {b}, 2], one per lane and throw")
+    if members and b % members:
+        raise ValueError(f"{b} throws cannot be split evenly over {members} ensemble members")
+    return env.check_goals(np.reshape(goals, (-1, 2)), lanes * b).reshape(lanes, b, 2)
+
+
+def lane_of_one(tree):
+    """One run's pytree as a lane of one: a leading axis of 1 on every leaf."""
+    return jax.tree.map(lambda x: x[None] if isinstance(x, jax.Array) else np.asarray(x)[None], tree)
+
+
+def lane(tree, i: int = 0):
+    """Lane i of a pytree with a leading lane axis."""
+    return jax.tree.map(lambda x: x[i], tree)
 
 
 def _episode_keys(key, b: int):
