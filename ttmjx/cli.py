@@ -670,11 +670,13 @@ def export(a: ExportArgs) -> None:
            "layers": spec.layers, "members": policy.members, "control_hz": contract.control_hz,
            "policy_hash": policy.policy_hash, "self_test_error": policy.self_test_error,
            "onnx": graph and {k: graph[k] for k in ("file", "sha256", "golden_error", "checked_with")}}
-    report(a, out, f"exported {source} -> {path} ({spec.kind} {spec.layers}x{spec.hidden}, "
+    report(a, out, f"exported {source} -> {path} ({spec.kind} {spec.layers}x{spec.hidden}, {spec.head} head, "
                    f"{policy.members} member(s), {contract.control_hz:g} Hz); golden self-test "
                    f"max error {policy.self_test_error:.2g}; " +
            (f"{graph['file']}: golden max error {graph['golden_error']:.2g} ({graph['checked_with']})"
-            if graph else "no ONNX graph (pip install 'ttmjx[onnx]' for one)"))
+            if graph else f"no ONNX graph (the {spec.head} head plays on the numpy engine; the graph is "
+                          f"built for the mean head)" if spec.head != "mean" else
+            "no ONNX graph (pip install 'ttmjx[onnx]' for one)"))
 
 
 def sim_station(*args, **kwargs) -> dict:
