@@ -5,6 +5,7 @@ member. Scoring is the world's one strict goal-metrics function (ttmjx.world.goa
 writes the per-episode record (eval.report)."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -16,6 +17,7 @@ from models.config import PolicyConfig
 from models.policy import ensemble_size, make_policy, member
 from training.budget import episodes_that_fit
 from training.checkpoint import load_checkpoint
+from training.seeds import stacked
 from ttmjx.world import thrower
 from ttmjx.world.backends import Backend, lane, lane_of_one, resolve_backend
 from ttmjx.world.config import THROW_DISTRIBUTIONS, World
@@ -156,35 +158,96 @@ def evaluate_checkpoint(path: str, goals: str = "200", per_goal: int = 40, distr
     goals ('uniform': EVAL_UNIFORM_GOALS), 'five' (per_goal attempts at each of A-E), or goals
     inline or in a goal file (one attempt each); throws of the run's distribution or
     `distribution`; one member alone with member_index. With `out`, the metrics, one row per
-    episode and the ball tracks are written there (eval.report)."""
+    episode and the ball tracks are written there (eval.report). evaluate_checkpoints on a lane
+    of one."""
+    return evaluate_checkpoints([path], goals, per_goal, distribution, backend, seed, member_index, step, out)[0]
+
+
+def evaluate_checkpoints(paths: list[str], goals: str = "200", per_goal: int = 40, distribution: str | None = None,
+                         backend: str | None = None, seed: int = 1234, member_index: int | None = None,
+                         step: int | None = None, out: str | None = None) -> list[dict]:
+    """evaluate_checkpoint's metrics of every run in `paths` (one per run, in order), the runs
+    played as the lanes of one rollout: params [L, ...]; every lane gets the goals and keys
+    one run gets alone, so each is scored exactly as it is scored alone. The runs must share
+    what the rollout is built from (shared_config). `out` (one run's records) takes one run."""
     if distribution is not None and distribution not in THROW_DISTRIBUTIONS:
         raise ValueError(f"distribution {distribution!r}; expected one of {THROW_DISTRIBUTIONS}")
+    if not paths:
+        raise ValueError("no run to evaluate: expected at least one run directory")
     if out is not None:
+        if len(paths) != 1:
+            raise ValueError(f"out={out!r} with {len(paths)} runs: the records are one run's; expected one run")
         check_out_dir(out)
-    loaded = load_checkpoint(path, step)
-    cfg = loaded.cfg
+    loaded = [load_checkpoint(p, step) for p in paths]
+    cfg = shared_config(paths, [ld.cfg for ld in loaded], backend)
     world = cfg.world if distribution is None else cfg.world.with_throws(distribution)
     # explicit goals lie on this run's table; counts are bounded by what fits in this device's memory
     spec = goal_spec(goals, world.table, most=episodes_that_fit(World()))
     be = Backend(world, resolve_backend(backend or cfg.backend))
-    members, params = cfg.train.members, loaded.params
-    if member_index is not None:
-        if not 0 <= member_index < ensemble_size(params):
-            raise ValueError(f"--member {member_index} is out of range: the run has {members} members")
-        members, params = None, member(params, member_index)
-    key = jax.random.PRNGKey(seed)
-    goals, names, k_run = eval_plan(spec, world, key, per_goal)
+    members, params = lane_params(loaded, cfg.train.members, member_index)
+    goals, names, k_run = eval_plan(spec, world, jax.random.PRNGKey(seed), per_goal)
+    # every lane plays the goals and rollout key of a run alone (Backend.rollout: a lane's draws
+    # and record are its own), so a batch's seed scores what `--seed-index K` scores
+    same = lambda x: stacked([x] * len(paths))  # noqa: E731
     # With --out the rollout also carries the true ball (tracks.npz); the record is the same.
-    played = rollout_goals_one(world, cfg.policy, params, be, k_run, goals, members, truth=out is not None)
+    played = rollout_goals(world, cfg.policy, params, be, same(k_run), same(goals), members, truth=out is not None)
     tr, true = played if out is not None else (played, None)
+    res = [lane_metrics(lane(tr, i), goals, names, world, ld) for i, ld in enumerate(loaded)]
+    if out is not None:
+        write_eval_dir(out, res[0], lane(tr), world, lane(true))
+    return res
+
+
+def shared_config(paths: list[str], cfgs: list, backend: str | None):
+    """The first run's RunConfig, once every run agrees with it on what one rollout of their lanes
+    is built from: the world, the policy, the ensemble size and (unless `backend` names one) the
+    backend; ValueError naming the first run and field that differ."""
+    first = cfgs[0]
+    shared = lambda c: {"world": c.world, "policy": c.policy, "train.members": c.train.members,  # noqa: E731
+                        **({} if backend else {"backend": c.backend})}
+    for path, c in zip(paths[1:], cfgs[1:]):
+        for name, want in shared(first).items():
+            diff = first_difference(want, shared(c)[name], name)
+            if diff is not None:
+                field, a, b = diff
+                raise ValueError(f"{path}: {field} is {b!r}, {paths[0]}'s is {a!r}; runs evaluated together "
+                                 f"must share the world, the policy, the ensemble size and the backend")
+    return first
+
+
+def first_difference(a, b, name: str):
+    """(dotted field, a's value, b's value) of the first field in which a and b differ, looking
+    inside dataclasses (the innermost field names what differs); None where they are equal."""
+    if a == b:
+        return None
+    if dataclasses.is_dataclass(a) and type(a) is type(b):
+        inner = (first_difference(getattr(a, f.name), getattr(b, f.name), f"{name}.{f.name}")
+                 for f in dataclasses.fields(a))
+        return next((d for d in inner if d is not None), (name, a, b))
+    return name, a, b
+
+
+def lane_params(loaded: list, members: int, member_index: int | None):
+    """(members, acting params [L, ...] of the runs stacked along the lane axis): the ensemble
+    [L, N, ...] playing in blocks, or with member_index that member alone in every lane (members
+    None, [L, ...])."""
+    params = [ld.params for ld in loaded]
+    if member_index is not None:
+        if not 0 <= member_index < ensemble_size(params[0]):
+            raise ValueError(f"--member {member_index} is out of range: the run has {members} members")
+        members, params = None, [member(p, member_index) for p in params]
+    return members, stacked(params)
+
+
+def lane_metrics(tr: Trajectories, goals, names, world: World, loaded) -> dict:
+    """One run's result from its lane of the rollout (Trajectories [N] toward goals [N, 2]):
+    goal_metrics, per goal for 'five' (names), the throw distribution and the checkpoint's
+    trajectories and step."""
     res = goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent)
     if names is not None:
         res["per_goal"] = per_goal_metrics(tr.landing, goals, tr.hit, tr.on_opponent, list(names))
-    res = {**res, "distribution": world.throws.name, "trajectories": int(loaded.ck.counters.trajectories),
-           "step": loaded.step}
-    if out is not None:
-        write_eval_dir(out, res, tr, world, true)
-    return res
+    return {**res, "distribution": world.throws.name, "trajectories": int(loaded.ck.counters.trajectories),
+            "step": loaded.step}
 
 
 def eval_plan(spec: GoalSpec, world: World, key, per_goal: int):
