@@ -72,11 +72,16 @@ def main():
     ap.add_argument("out")
     ap.add_argument("--demos", type=int, default=128)
     ap.add_argument("--window", type=float, default=0.3, help="seconds of each piece traced")
+    ap.add_argument("--no-trace", action="store_true", help="time the pieces only (no jax.profiler trace)")
+    ap.add_argument("--rounds", type=int, default=1, help="timed practice rounds after the compiling one")
+    ap.add_argument("--update-dtype", choices=("float32", "bfloat16"), help="train.update_dtype")
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
     scratch = tempfile.mkdtemp(prefix="ttmjx-profile-")
     cfg = preset(a.preset)
     cfg = dataclasses.replace(cfg, demos=min(cfg.demos, a.demos), run_dir=os.path.join(scratch, "run"))
+    if a.update_dtype:
+        cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, update_dtype=a.update_dtype))
     t0 = time.perf_counter()
     run = Run(cfg, None, progress=False)
     ck = run.start()
@@ -85,10 +90,17 @@ def main():
            "episodes_per_round": cfg.episodes_per_ssp, "updates_per_round": cfg.steps_between_ssp}
     it_p = pretrain_iterations(cfg)             # the first practice round
     _, res["round_first_s"] = timed_step(run, ck, it_p)
-    _, res["round_s"] = timed_step(run, ck, it_p)
+    res["rounds_s"] = [timed_step(run, ck, it_p)[1] for _ in range(a.rounds)]
+    res["round_s"] = float(np.median(res["rounds_s"]))
     _, res["chunk_first_s"] = timed_step(run, ck, 0)
     _, res["chunk_s"] = timed_step(run, ck, 0)
+    res["world_contacts"] = dataclasses.asdict(cfg.world.contacts)
     print(json.dumps(res), flush=True)
+    if a.no_trace:
+        with open(os.path.join(a.out, "profile_summary.json"), "w") as f:
+            json.dump(res, f, indent=1)
+        shutil.rmtree(scratch, ignore_errors=True)
+        return
     # A round is 1,600 sequential physics steps of hundreds of kernels each: a whole round's trace
     # overflows CUPTI's buffers and takes minutes to convert. So each piece is sampled: the trace
     # runs for WINDOW_S from the moment the piece is launched (the round's goals, then its rollout;

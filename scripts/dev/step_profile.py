@@ -226,10 +226,19 @@ def main():
     ap.add_argument("--capacity", type=int, help="synthetic cache rows (default: the preset's)")
     ap.add_argument("--pieces", default="physics,policy,train,rollout", help="a subset of physics,policy,train,rollout")
     ap.add_argument("--episode", action="store_true", help="also a whole episode of rollout_fn")
+    ap.add_argument("--solver-iterations", type=int, help="world.contacts.solver_iterations (default: the preset's)")
+    ap.add_argument("--line-search-iterations", type=int,
+                    help="world.contacts.line_search_iterations (default: the preset's)")
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
     t_start = time.perf_counter()
     cfg = preset(a.preset)
+    solver = {k: v for k, v in (("solver_iterations", a.solver_iterations),
+                                ("line_search_iterations", a.line_search_iterations)) if v is not None}
+    if solver:
+        world = cfg.world
+        cfg = dataclasses.replace(cfg, world=dataclasses.replace(
+            world, contacts=dataclasses.replace(world.contacts, **solver)))
     world, pcfg, tcfg = cfg.world, cfg.policy, cfg.train
     b = a.worlds or cfg.episodes_per_ssp
     members = tcfg.members
@@ -237,7 +246,8 @@ def main():
     pieces = [p for p in a.pieces.split(",") if p] + (["episode"] if a.episode else [])
     res = {"preset": a.preset, "jax": jax.__version__, "backend": jax.default_backend(),
            "device": str(jax.devices()[0].device_kind), "devices": jax.device_count(), "physics": "mjx",
-           "mjx_impl": world.mjx_impl,
+           "mjx_impl": world.mjx_impl, "solver_iterations": world.contacts.solver_iterations,
+           "line_search_iterations": world.contacts.line_search_iterations,
            "shapes": {"worlds": b, "members": members, "policy": dataclasses.asdict(pcfg),
                       "substeps_per_control_step": world.substeps, "control_hz": world.control_hz,
                       "horizon": world.horizon, "timing_ideal": world.timing.ideal,

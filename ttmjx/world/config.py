@@ -84,6 +84,21 @@ class Contacts:
     net_damping: float = 900.0
     net_friction: float = 0.3
     impedance: float = 0.99
+    # The constraint solver's caps (MuJoCo's defaults: 100 and 50). Measured on this scene (64
+    # thrower throws, 1.6 s each): MuJoCo C's Newton solver stops on its tolerance after at most
+    # 5 iterations with at most 6 line-search evaluations, MJX's after at most 5. The caps matter
+    # for speed on MJX: there a batch's while loop runs until its slowest world stops, and the
+    # line search is a scan of `line_search_iterations` steps under vmap, every step computed
+    # for every world (both branches of its cond). 50 -> 8 moved no ball by more than 3 um over
+    # those throws; BENCHMARKS.md "Where a paper-sim round's time goes" has the speed.
+    solver_iterations: int = 10
+    line_search_iterations: int = 8
+
+    def __post_init__(self):
+        for name in ("solver_iterations", "line_search_iterations"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or not 1 <= v <= 1000:
+                raise ValueError(f"world.contacts.{name} must be an integer in [1, 1000], got {v!r}")
 
 
 @dataclasses.dataclass(frozen=True)

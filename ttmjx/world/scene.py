@@ -108,7 +108,8 @@ def mjcf(cfg: World, fluid: bool = True, inertia: tuple | None = None) -> str:
 <mujoco model="ttmjx">
   <compiler angle="radian" autolimits="true"/>
   <option timestep="{cfg.physics_dt}" integrator="Euler" density="{density}" viscosity="0"
-          gravity="0 0 -9.81" cone="pyramidal"/>
+          gravity="0 0 -9.81" cone="pyramidal"
+          iterations="{c.solver_iterations}" ls_iterations="{c.line_search_iterations}"/>
   <default>
     <geom contype="0" conaffinity="0" group="1"/>
   </default>
