@@ -181,8 +181,9 @@ def evaluate_checkpoints(paths: list[str], goals: str = "200", per_goal: int = 4
     loaded = [load_checkpoint(p, step) for p in paths]
     cfg = shared_config(paths, [ld.cfg for ld in loaded], backend)
     world = cfg.world if distribution is None else cfg.world.with_throws(distribution)
-    # explicit goals lie on this run's table; counts are bounded by what fits in this device's memory
-    spec = goal_spec(goals, world.table, most=episodes_that_fit(World()))
+    # explicit goals lie on this run's table; counts are bounded by what fits in this device's
+    # memory, shared by the L lanes that play at once
+    spec = goal_spec(goals, world.table, most=max(1, episodes_that_fit(World()) // len(paths)))
     be = Backend(world, resolve_backend(backend or cfg.backend))
     members, params = lane_params(loaded, cfg.train.members, member_index)
     goals, names, k_run = eval_plan(spec, world, jax.random.PRNGKey(seed), per_goal)
