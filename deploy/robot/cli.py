@@ -226,7 +226,8 @@ def robot_run(a: RobotRunArgs, sim_station: Callable[..., dict] | None = None) -
             f"hit rate {m.get('hit_rate', 0):.0%}; " if m else "") +
            (f"timing {tm['source']}{' (inside the trained range)' if tm['within_trained'] else ''}; "
             if tm else "") +
-           f"faults {out['faults']}; " + gantry_link_line(out.get("gantry")) + f"logs in {out['out']}" +
+           f"faults {out['faults']}; " + gantry_link_line(out.get("gantry")) +
+           (f"logs in {out['out']}" if out["out"] else "no episode logs (--out DIR keeps them)") +
            (f"\n{timing_line(tm)}" if tm and not tm["within_trained"] else ""))
     if out["episodes"] != out["goals"]:
         sys.exit(1)
