@@ -10,13 +10,14 @@ Bands come from PHYSICS.md / the issue; never widen them to pass: tune ttmjx.wor
 Every MJX experiment runs as batches of calibration.MJX_BATCH through one jit-compiled program
 (module fixtures), so the file compiles MJX once (persistent cache: tests/conftest.py).
 """
+import dataclasses
 import functools
 from typing import NamedTuple
 
 import numpy as np
 import pytest
 
-from ttmjx.world import backends
+from ttmjx.world import backends, scene
 from ttmjx.tools import calibration as cal
 from ttmjx.world.config import World
 
@@ -206,3 +207,33 @@ def test_net_never_lets_a_ball_through(impacts, backend):
     ball, _ = impacts(backend)["net_throws"]
     passed = cal.net_passes(ball, impact_experiments().net_side)
     assert not passed.any(), f"{passed.sum()} of {len(passed)} net throws passed through"
+
+
+# --- the constraint solver's caps --------------------------------------------------------------
+CAPS_TOL = PARITY_TOL / 10    # m: the caps may move a ball by a tenth of what the backends may differ
+
+
+def test_the_solver_caps_reach_both_backends_models():
+    """world.contacts' caps are the MJCF's, so MuJoCo C and MJX solve with the same ones; a bad
+    cap is refused naming the field."""
+    caps = World(contacts=dataclasses.replace(CFG.contacts, solver_iterations=7, line_search_iterations=3))
+    for m in (scene.model(caps, fluid=True), scene.model(caps, fluid=False)):
+        assert (m.opt.iterations, m.opt.ls_iterations) == (7, 3)
+    with pytest.raises(ValueError, match=r"^world.contacts.line_search_iterations must be an integer in "
+                                         r"\[1, 1000\], got 0$"):
+        dataclasses.replace(CFG.contacts, line_search_iterations=0)
+
+
+@pytest.mark.slow
+def test_the_solver_caps_move_no_ball_on_mjx(impacts):
+    """MJX at world.contacts' caps against MuJoCo's defaults (100 iterations of a 50-step line
+    search) on every impact experiment (table, paddle, net, 20 m/s): the caps make MJX's batched
+    solver cheaper (docs/BENCHMARKS.md, "The constraint solver's caps") and must not change a
+    bounce: every ball within CAPS_TOL after each physics step."""
+    defaults = World(contacts=dataclasses.replace(CFG.contacts, solver_iterations=100, line_search_iterations=50))
+    assert (CFG.contacts.solver_iterations, CFG.contacts.line_search_iterations) != (100, 50)
+    ex = impact_experiments()
+    ball, _ = cal.ball_trajectories(backends.MjxPhysics(defaults), ex.qpos, ex.qvel, cal.IMPACT_CONTROL_STEPS)
+    for name, (_, s) in ex.parts.items():
+        err = np.linalg.norm(impacts("mjx")[name][0][..., :3] - ball[s][..., :3], axis=-1).max()
+        assert err < CAPS_TOL, f"{name}: {err * 1e3:.3f} mm"
