@@ -216,7 +216,7 @@ CAPS_TOL = PARITY_TOL / 10    # m: the caps may move a ball by a tenth of what t
 def test_the_solver_caps_reach_both_backends_models():
     """world.contacts' caps are the MJCF's, so MuJoCo C and MJX solve with the same ones; a bad
     cap is refused naming the field."""
-    caps = World(contacts=dataclasses.replace(CFG.contacts, solver_iterations=7, line_search_iterations=3))
+    caps = CFG.with_solver_caps(7, 3)
     for m in (scene.model(caps, fluid=True), scene.model(caps, fluid=False)):
         assert (m.opt.iterations, m.opt.ls_iterations) == (7, 3)
     with pytest.raises(ValueError, match=r"^world.contacts.line_search_iterations must be an integer in "
@@ -230,7 +230,7 @@ def test_the_solver_caps_move_no_ball_on_mjx(impacts):
     search) on every impact experiment (table, paddle, net, 20 m/s): the caps make MJX's batched
     solver cheaper (docs/BENCHMARKS.md, "The constraint solver's caps") and must not change a
     bounce: every ball within CAPS_TOL after each physics step."""
-    defaults = World(contacts=dataclasses.replace(CFG.contacts, solver_iterations=100, line_search_iterations=50))
+    defaults = CFG.with_solver_caps(100, 50)
     assert (CFG.contacts.solver_iterations, CFG.contacts.line_search_iterations) != (100, 50)
     ex = impact_experiments()
     ball, _ = cal.ball_trajectories(backends.MjxPhysics(defaults), ex.qpos, ex.qvel, cal.IMPACT_CONTROL_STEPS)

@@ -12,7 +12,6 @@ one episode each:
     python scripts/dev/solver_iterations.py [--preset paper-sim] [--throws 64] [--caps 10,8 8,4]
 """
 import argparse
-import dataclasses
 import inspect
 import json
 import os
@@ -38,11 +37,6 @@ def report_mjx_iterations():
                       "'_impl.efc_force': ctx.efc_force, '_impl.solver_niter': ctx.solver_niter,")
     assert "solver_niter': ctx" in src, "MJX's solve changed: update this patch"
     exec(compile(src, solver.__file__, "exec"), solver.__dict__)   # forward.py calls solver.solve
-
-
-def with_caps(world, caps):
-    return dataclasses.replace(world, contacts=dataclasses.replace(
-        world.contacts, solver_iterations=caps[0], line_search_iterations=caps[1]))
 
 
 def c_counts(world, states) -> dict:
@@ -93,7 +87,7 @@ def main():
     ap.add_argument("--caps", nargs="*", default=["10,8", "8,4"], help="iterations,line-search pairs")
     a = ap.parse_args()
     report_mjx_iterations()
-    world = with_caps(preset(a.preset).world, (100, 50))
+    world = preset(a.preset).world.with_solver_caps(100, 50)
     throws = thrower.sample_throws(jax.random.key(1), world, a.throws)
     goals = uniform_goals(jax.random.key(2), a.throws, world.table, 0.1)
     states = Backend(world, "c").reset(jax.random.key(3), throws, goals)
@@ -103,7 +97,7 @@ def main():
                             "steps_iterating_in_the_batch": float((it.max(0) > 0).mean())}
     for caps in a.caps:
         c = tuple(int(x) for x in caps.split(","))
-        ball, _ = mjx_episode(with_caps(world, c), states)
+        ball, _ = mjx_episode(world.with_solver_caps(*c), states)
         out[f"mjx_at_{c[0]}_{c[1]}_ball_max_diff_m"] = float(np.linalg.norm(ball - ref, axis=-1).max())
     print(json.dumps(out, indent=1))
 

@@ -233,12 +233,7 @@ def main():
     os.makedirs(a.out, exist_ok=True)
     t_start = time.perf_counter()
     cfg = preset(a.preset)
-    solver = {k: v for k, v in (("solver_iterations", a.solver_iterations),
-                                ("line_search_iterations", a.line_search_iterations)) if v is not None}
-    if solver:
-        world = cfg.world
-        cfg = dataclasses.replace(cfg, world=dataclasses.replace(
-            world, contacts=dataclasses.replace(world.contacts, **solver)))
+    cfg = dataclasses.replace(cfg, world=cfg.world.with_solver_caps(a.solver_iterations, a.line_search_iterations))
     world, pcfg, tcfg = cfg.world, cfg.policy, cfg.train
     b = a.worlds or cfg.episodes_per_ssp
     members = tcfg.members

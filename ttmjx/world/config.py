@@ -428,6 +428,13 @@ class World:
     def with_throws(self, name: str, **kw) -> "World":
         return dataclasses.replace(self, throws=dataclasses.replace(self.throws, name=name, **kw))
 
+    def with_solver_caps(self, iterations: int | None = None, line_search: int | None = None) -> "World":
+        """This world with the constraint solver's caps (Contacts.solver_iterations and
+        line_search_iterations) replaced where given."""
+        caps = {k: v for k, v in (("solver_iterations", iterations), ("line_search_iterations", line_search))
+                if v is not None}
+        return dataclasses.replace(self, contacts=dataclasses.replace(self.contacts, **caps))
+
 
 def _flag(path: str) -> str:
     """The command-line flag of a World field path ('world.throws.narrow_speed' -> '--world.throws.narrow-speed')."""
