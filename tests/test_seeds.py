@@ -192,15 +192,19 @@ def test_the_training_benchmark_times_every_piece_of_a_batched_round():
     from the round, the projection from the preset's schedule."""
     from eval.bench_train import bench_training
     out = bench_training("tiny", seeds=2, reps=1, log=lambda m: None)
-    pieces = ("throws_block", "rollout", "relabel_insert", "updates", "round", "evaluation")
+    pieces = ("pretrain_step", "practice_step", "throws_block", "rollout", "relabel_insert", "updates", "round",
+              "evaluation")
     assert all(out[f"{p}_s"] > 0 and out[f"{p}_first_call_s"] > 0 for p in pieces)
     cfg = runconfig.tiny()
     assert out["episodes_per_round"] == 2 * cfg.episodes_per_ssp
-    assert out["trajectories_per_s"] == pytest.approx(2 * cfg.episodes_per_ssp / out["round_s"])
+    # the rates of a round as the run steps it (which includes the compiled round)
+    assert out["trajectories_per_s"] == pytest.approx(2 * cfg.episodes_per_ssp / out["practice_step_s"])
     sch = out["schedule"]
-    assert (sch["pretrain_chunks"], sch["practice_rounds"], sch["checkpoints"]) == (2, 4, 6)
-    # the whole run: its setup (demonstrations, starting states and saves) and checkpoints included
-    assert out["setup_s"] > 0 and out["save_s"] > 0
-    assert out["projected_run_s"] >= (out["setup_s"] + sch["practice_rounds"] * out["round_s"]
+    assert (sch["pretrain_chunks"], sch["practice_rounds"], sch["checkpoints"], sch["throw_blocks"]) == (2, 4, 6, 1)
+    # the whole run: the process's start, its setup (demonstrations, starting states and saves),
+    # every iteration as Run.step plays it, the evaluations and checkpoints
+    assert out["startup_s"] > 0 and out["setup_s"] > 0 and out["save_s"] > 0
+    assert out["projected_run_s"] >= (out["startup_s"] + out["setup_s"] + sch["pretrain_chunks"] * out["pretrain_step_s"]
+                                      + sch["practice_rounds"] * out["practice_step_s"]
                                       + sch["evaluations"] * out["evaluation_s"] + sch["checkpoints"] * out["save_s"])
     assert out["peak_host_rss_gib"] > 0

@@ -47,6 +47,7 @@ import time
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 from models.normalizer import identity_normalizer  # noqa: E402
@@ -188,7 +189,7 @@ def measure(fn, args, steps: int, reps: int) -> dict:
     t1 = time.perf_counter()
     compiled = lowered.compile()
     t2 = time.perf_counter()
-    jax.block_until_ready(compiled(*args))
+    first = jax.block_until_ready(compiled(*args))
     t3 = time.perf_counter()
     times = []
     for _ in range(reps):
@@ -199,7 +200,15 @@ def measure(fn, args, steps: int, reps: int) -> dict:
     return {"steps_per_call": steps, "lower_s": round(t1 - t0, 3), "compile_s": round(t2 - t1, 3),
             "first_call_s": round(t3 - t2, 4), "call_s": [round(t, 5) for t in times],
             "median_call_s": round(med, 5), "per_step_s": med / steps,
-            "kernels": kernel_counts(compiled.as_text(), steps)}
+            "kernels": kernel_counts(compiled.as_text(), steps), "checksum": checksum(first)}
+
+
+def checksum(out) -> float:
+    """The sum of every float leaf of out, in float64 on the host: equal programs (an XLA flag
+    that changes only how kernels are launched) give equal sums."""
+    leaves = [np.asarray(x, np.float64) for x in jax.tree.leaves(out)
+              if jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating)]
+    return float(sum(np.nansum(x) for x in leaves))
 
 
 def synthetic_cache(key, capacity: int, horizon: int, window: int, demos: int) -> Cache:
@@ -239,7 +248,7 @@ def main():
     members = tcfg.members
     b = max(members, b - b % members)               # every member plays an equal block
     pieces = [p for p in a.pieces.split(",") if p] + (["episode"] if a.episode else [])
-    res = {"preset": a.preset, "jax": jax.__version__, "backend": jax.default_backend(),
+    res = {"preset": a.preset, "jax": jax.__version__, "backend": jax.default_backend(), "xla_flags": os.environ.get("XLA_FLAGS", ""),
            "device": str(jax.devices()[0].device_kind), "devices": jax.device_count(), "physics": "mjx",
            "mjx_impl": world.mjx_impl, "solver_iterations": world.contacts.solver_iterations,
            "line_search_iterations": world.contacts.line_search_iterations,
