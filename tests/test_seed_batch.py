@@ -74,10 +74,11 @@ def test_each_lane_of_a_real_batch_scores_what_its_seed_scores_alone(seed_batch,
         return lane_metrics(tr, goals, *rest)
     monkeypatch.setattr(evaluation, "lane_metrics", recorded)
     dirs = seed_run_dirs(seed_batch)
-    out = evaluate_seeds(seed_batch, "8", 40, None, "c", 7, None, None)
-    alone = [evaluate_checkpoint(d, "8", backend="c", seed=7) for d in dirs]
+    # the five goals twice each throughout: one count of throws, so one thrower program per lane count
+    out = evaluate_seeds(seed_batch, "five", 2, None, "c", 7, None, None)
+    alone = [evaluate_checkpoint(d, "five", 2, backend="c", seed=7) for d in dirs]
     assert comparable(out["runs"]) == comparable([{"run_dir": d, **numbers(m)} for d, m in zip(dirs, alone)])
-    assert alone[0]["goals"] == 8 and alone[0]["step"] == 0
+    assert alone[0]["goals"] == 10 and alone[0]["step"] == 0
     batched, one = records[:2], records[2:]
     for s in range(2):
         for name, x, y in zip(Trajectories._fields, batched[s][0], one[s][0]):
@@ -91,9 +92,9 @@ def test_each_lane_of_a_real_batch_scores_what_its_seed_scores_alone(seed_batch,
                                             for d in dirs])
     assert set(lanes[0]["per_goal"]) == set("ABCDE")
     with pytest.raises(ValueError, match=r"^--member 2 is out of range: the run has 2 members$"):
-        evaluate_checkpoints(dirs, "8", backend="c", member_index=2)
+        evaluate_checkpoints(dirs, "five", 2, backend="c", member_index=2)
     with pytest.raises(ValueError, match=r"out='o' with 2 runs: the records are one run's; expected one run"):
-        evaluate_checkpoints(dirs, "8", backend="c", out="o")
+        evaluate_checkpoints(dirs, "five", 2, backend="c", out="o")
 
 
 def test_runs_played_together_must_share_the_rollout(tmp_path):
