@@ -315,18 +315,9 @@ def _sample(key, prm: dict, sp: _Spec, n: int):
     throw, valid, bad, fl, tries = jax.lax.while_loop(lambda c: jnp.any(pending(c)), body,
                                                       (throw, valid, bad, fl, tries))
     info = {"valid": valid, "error": jnp.linalg.norm(fl.bounce - throw.aim, axis=-1),
-            "clearance": fl.clearance, "flight_time": fl.time, "tries": tries}
+            "clearance": fl.clearance, "flight_time": fl.time, "tries": tries,
+            "acceptance": jnp.sum(valid) / jnp.sum(tries)}
     return throw, info
-
-
-def padded_count(n: int) -> int:
-    """The number of throws solved for a request of n: the next power of two up to 256, then the
-    next multiple of 256. Throw i depends only on (key, i), so the first n of a padded batch are
-    the n asked for; the padding makes the many small counts (evaluations, tests) share a few
-    compiled programs, the solver's being the costliest to compile (~10 s on a CPU)."""
-    if n <= 256:
-        return max(8, 1 << (n - 1).bit_length())
-    return -(-n // 256) * 256
 
 
 def sample_throws(key, cfg: World, n: int) -> Throw:
@@ -344,11 +335,7 @@ def sample_throws_info(key, cfg: World, n: int) -> tuple[Throw, dict]:
     `clearance` (m), `flight_time` (s), `tries` (candidates drawn); and `acceptance`, the
     fraction of drawn candidates that were valid."""
     _check(cfg, n)
-    n = int(n)
-    throw, info = _sample(key, _params(cfg), _spec(cfg), padded_count(n))
-    throw, info = jax.tree.map(lambda x: x[..., :n, :] if x.ndim > 1 else x[..., :n], (throw, info))
-    info["acceptance"] = jnp.sum(info["valid"]) / jnp.sum(info["tries"])
-    return throw, info
+    return _sample(key, _params(cfg), _spec(cfg), int(n))
 
 
 @functools.partial(jax.jit, static_argnums=(1,))
