@@ -28,12 +28,12 @@ import numpy as np
 
 from eval.evaluate import training_evaluation
 from training.cache import add_episodes
+from training.checkpoint import Checkpointed
 from training.practice import THROW_BLOCK, practice_policy
 from training.runconfig import preset
 from training.schedule import (is_checkpoint_iteration, is_eval_iteration, practice_iterations, pretrain_iterations,
                                total_iterations)
 from training.seeds import seed_configs
-from training.checkpoint import Checkpointed
 from training.trainer import Run
 from training.update import acting_params
 from ttmjx.world.env import uniform_goals
