@@ -15,7 +15,6 @@ later saves write fuller pools).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import os
 import resource
 import shutil
@@ -94,8 +93,7 @@ def _bench(name: str, seeds: int, reps: int, demos: int | None, backend: str | N
                               demos=min(cfg.demos, demos) if demos and cfg.demos else cfg.demos,
                               backend=backend or cfg.backend, run_dir=os.path.join(scratch, name))
     t0 = time.perf_counter()
-    # as `ttmjx train` builds it: one seed a batch of one, evaluated with the held-out loss
-    runs = Run(seed_configs(cfg, seeds), functools.partial(training_evaluation, heldout=True), progress=False, log=log)
+    runs = Run(seed_configs(cfg, seeds), progress=False, log=log)   # one seed: a batch of one, as `ttmjx train`
     ck = jax.block_until_ready(runs.start())   # as the run starts: demonstrations, states, first saves
     setup_s = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -119,7 +117,7 @@ def _bench(name: str, seeds: int, reps: int, demos: int | None, backend: str | N
     # the run calls it (its first call collects the held-out demonstrations).
     # Each call goes on from the last one's state: a round's physics costs more for a policy that
     # has learnt to reach the ball (its contacts) than for the untrained start.
-    evaluate, runs.evaluate = runs.evaluate, None
+    evaluate = training_evaluation([r.cfg for r in runs.runs], heldout=True)   # as `ttmjx train` evaluates
     latest = [ck]
 
     def step_on(it: int) -> Checkpointed:
