@@ -202,3 +202,24 @@ def test_the_layerwise_lstm_sequence_is_the_step_by_step_lstm(layers):
     g_ref = jax.grad(lambda p: jnp.sum(stepped(p) ** 2))(net)
     for a, b in zip(jax.tree.leaves(g_fast), jax.tree.leaves(g_ref)):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+
+
+def test_the_cudnn_weight_packing_gives_jaxs_reference_lstm_the_same_outputs():
+    """The GPU updates' cuDNN LSTM (models.cudnn_lstm) reads flax's cells through cudnn_weights.
+    Unpacked by JAX's own reader and run through JAX's reference of cuDNN's arithmetic
+    (rnn.lstm_ref, which runs on this CPU), the packed weights give lstm_sequence's outputs."""
+    from jax.experimental import rnn
+    from models.cudnn_lstm import cudnn_weights, lstm_layers
+    from models.networks import init_net, lstm_sequence
+    cfg = PolicyConfig("lstm", hidden=32, layers=2, obs_size=16)
+    net = init_net(jax.random.PRNGKey(6), cfg)
+    p = net["params"]
+    x = jax.random.normal(jax.random.PRNGKey(7), (3, 24, 16))                  # [B, L, I]
+    w = cudnn_weights(p)
+    assert lstm_layers(p) == 2 and w.shape == (rnn.get_num_params_in_lstm(16, 32, 2, False),)
+    w_ih, w_hh, b_ih, b_hh = rnn.unpack_lstm_weights(w, 16, 32, 2, False)
+    zero = jnp.zeros((2, 3, 32))
+    y = rnn.lstm_ref(x, zero, zero, w_ih, w_hh, b_ih, b_hh, jnp.full((3,), 24, jnp.int32), 16, 32, 2, 0.0, False)[0]
+    head = p["head"]
+    want = jax.vmap(lambda s: lstm_sequence(net, s))(x)
+    np.testing.assert_allclose(y @ head["kernel"] + head["bias"], want, rtol=1e-5, atol=1e-6)

@@ -9,6 +9,7 @@ PRACTICE_KEEP = ("hits", "near_half")
 PRACTICE_GOALS = ("uniform", "frontier")   # where practice goals are drawn (training.frontier)
 NOISE_FORMS = ("offset", "integrating")    # how action noise is applied (training.practice)
 UPDATE_DTYPES = ("float32", "bfloat16")    # the arithmetic of the updates (training.loss)
+LSTM_KERNELS = ("auto", "scan", "cudnn")    # how the updates run the LSTM (training.loss.lstm_kernel)
 # Practice goals farther than this beyond the table's edges (m) are not goals a return can aim at
 # (the opponent's half is 1.37 m deep and 1.525 m wide).
 MAX_GOAL_MARGIN = 1.0
@@ -68,6 +69,11 @@ class TrainConfig:
     # network's weights and inputs cast to bfloat16 for the products; the weights themselves,
     # Adam's moments and the loss stay float32). Rollouts and evaluations act in float32.
     update_dtype: Literal[UPDATE_DTYPES] = "float32"
+    # How the updates run an LSTM policy over its windows: "scan", a lax.scan of the cell (every
+    # backend); "cudnn", cuDNN's LSTM (models.cudnn_lstm: a GPU, float32); "auto", cuDNN where
+    # both hold, else the scan. The same parameters and function either way; rollouts always step
+    # the cell, and an MLP policy (framestack) has no recurrence to run either way.
+    lstm_kernel: Literal[LSTM_KERNELS] = "auto"
 
     def __post_init__(self):
         for name in ("window", "batch_size", "members", "capacity"):
@@ -91,6 +97,11 @@ class TrainConfig:
                              f"round's practice goals drawn from the frontier, in [0, 1]")
         if self.update_dtype not in UPDATE_DTYPES:
             raise ValueError(f"TrainConfig.update_dtype={self.update_dtype!r}, expected one of {UPDATE_DTYPES}")
+        if self.lstm_kernel not in LSTM_KERNELS:
+            raise ValueError(f"TrainConfig.lstm_kernel={self.lstm_kernel!r}, expected one of {LSTM_KERNELS}")
+        if self.lstm_kernel == "cudnn" and self.update_dtype != "float32":
+            raise ValueError(f"TrainConfig.lstm_kernel='cudnn' with update_dtype={self.update_dtype!r}: cuDNN's "
+                             f"LSTM runs float32 only; expected update_dtype='float32' or lstm_kernel 'scan'/'auto'")
         if self.practice_keep not in PRACTICE_KEEP:
             raise ValueError(f"TrainConfig.practice_keep={self.practice_keep!r}, expected one of {PRACTICE_KEEP}")
         if not 0.0 <= self.demo_fraction <= 1.0:

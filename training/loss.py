@@ -6,12 +6,14 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from models import cudnn_lstm
 from models.config import PolicyConfig
 from models.normalizer import normalize_actions
 from models.heads import step_losses
 from models.networks import net_sequence_outputs
 from models.normalizer import normalize_obs
 from models.policy import PolicyParams
+from training.config import TrainConfig
 from training.sampler import Batch
 
 
@@ -35,17 +37,40 @@ def masked_mean(losses, mask):
     return jnp.sum(w * losses) / jnp.maximum(w.sum(), 1.0)
 
 
-def policy_loss(cfg: PolicyConfig, params: PolicyParams, batch: Batch, dtype: str = "float32"):
+def lstm_kernel(pcfg: PolicyConfig, tcfg: TrainConfig) -> str:
+    """The kernel the updates run the network with: "cudnn" or "scan" (TrainConfig.lstm_kernel
+    resolved on this backend). Raises ValueError for "cudnn" where cuDNN's LSTM cannot run."""
+    if pcfg.kind != "lstm":
+        return "scan"
+    if tcfg.lstm_kernel == "cudnn" and not cudnn_lstm.available():
+        raise ValueError(f"--train.lstm-kernel cudnn needs a CUDA GPU with JAX's cuDNN RNN kernels; this backend is "
+                         f"{jax.default_backend()!r}; expected --train.lstm-kernel scan or auto")
+    if tcfg.lstm_kernel == "auto":
+        return "cudnn" if tcfg.update_dtype == "float32" and cudnn_lstm.available() else "scan"
+    return tcfg.lstm_kernel
+
+
+def sequence_outputs(cfg: PolicyConfig, net, x, kernel: str = "scan"):
+    """The network over a batch of windows from a zero state: x [B, k, S, O] normalized -> the
+    head's outputs [B, k, D], through the scan or cuDNN (the same function)."""
+    if kernel == "cudnn":
+        return cudnn_lstm.cudnn_sequence_outputs(net, x[:, :, 0])
+    return jax.vmap(lambda f: net_sequence_outputs(cfg, net, f))(x)
+
+
+def policy_loss(cfg: PolicyConfig, params: PolicyParams, batch: Batch, dtype: str = "float32",
+                kernel: str = "scan"):
     """Scalar loss of one member on a batch, in normalized action units (each joint has unit
     variance in the data, so metres of gantry and radians of wrist weigh alike).
 
     dtype: the network's arithmetic (TrainConfig.update_dtype). With bfloat16 the weights and the
     normalized inputs are cast for the products and the outputs cast back, so the loss, its
-    gradient with respect to the float32 weights and the optimizer stay float32."""
+    gradient with respect to the float32 weights and the optimizer stay float32.
+    kernel: "scan" or "cudnn" (lstm_kernel)."""
     dt = jnp.dtype(dtype)
     net = params.net if dt == jnp.float32 else jax.tree.map(lambda w: w.astype(dt), params.net)
     x = normalize_obs(params.norm, batch.frames).astype(dt)                        # [B, k, S, O]
-    y = jax.vmap(lambda f: net_sequence_outputs(cfg, net, f))(x).astype(jnp.float32)   # [B, k, D]
+    y = sequence_outputs(cfg, net, x, kernel).astype(jnp.float32)                  # [B, k, D]
     target = normalize_actions(params.norm, batch.actions)
     if cfg.head == "mean":      # the paper's loss, written as masked_mse (tests check it against a plain one)
         return masked_mse(y, target, batch.mask)

@@ -51,6 +51,7 @@ from training.runconfig import RunConfig
 from training.schedule import (is_checkpoint_iteration, is_eval_iteration, phase, round_episodes,
                                total_iterations)
 from training.seeds import check_one_batch, mean_row, seed_slice, seed_spread, stacked
+from training.loss import lstm_kernel
 from training.update import acting_params, lane_knobs
 from ttmjx.commandline import install_stop_signals, restore_signals
 from ttmjx.world import files
@@ -88,6 +89,7 @@ class Run:
         self.single = isinstance(cfgs, RunConfig)
         every = [cfgs] if self.single else list(cfgs)
         check_one_batch(every)
+        lstm_kernel(every[0].policy, every[0].train)      # refuses a kernel this backend lacks, before any work
         if self.single and parent is None:
             check_not_seed_parent(every[0].run_dir)
         self.all_cfgs = every

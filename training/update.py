@@ -18,7 +18,7 @@ from models.normalizer import Normalizer
 from models.policy import PolicyParams, ensemble_size, init_ensemble
 from training.cache import Cache
 from training.config import TrainConfig
-from training.loss import policy_loss
+from training.loss import lstm_kernel, policy_loss
 from training.sampler import sample_subsequences
 
 
@@ -94,7 +94,8 @@ def member_update(pcfg: PolicyConfig, tcfg: TrainConfig, params: PolicyParams, o
     batch = sample_subsequences(key, cache, tcfg.window, tcfg.batch_size, pcfg.input_frames, pcfg.obs_size, f,
                                 tcfg.balance)
     loss, grads = jax.value_and_grad(
-        lambda net: policy_loss(pcfg, params._replace(net=net), batch, tcfg.update_dtype))(params.net)
+        lambda net: policy_loss(pcfg, params._replace(net=net), batch, tcfg.update_dtype,
+                                lstm_kernel(pcfg, tcfg)))(params.net)
     updates, opt_state = optimizer(tcfg, learning_rate).update(grads, opt_state, params.net)
     return params._replace(net=optax.apply_updates(params.net, updates)), opt_state, loss
 

@@ -207,6 +207,8 @@ class TrainArgs(Report):
         super().__post_init__()
         check_resumable_dir("run_dir", self.config.run_dir)
         self.config.check_meaningful()
+        from training.loss import lstm_kernel      # JAX's backend: imported on use, as the command's work is
+        lstm_kernel(self.config.policy, self.config.train)
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)

@@ -10,6 +10,8 @@ backend, always on MJX physics (never MuJoCo C, whatever the device):
             events, record): the per-step cost a round's rollout pays
   train     training.update.make_train_loop over a synthetic full cache of random episodes (the
             preset's capacity, horizon, window, batch, members), for update_dtype float32 and bfloat16
+            by the scan, and on a GPU float32 by cuDNN's LSTM (train_cudnn), with the two kernels'
+            loss and gradients on one batch compared (cudnn_vs_scan)
   episode   (--episode) a whole episode (world.horizon control steps) of Backend.rollout_fn
 
 B = the preset's practice episodes per round (--worlds). Each piece is one jitted lax.scan of
@@ -50,10 +52,13 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from models import cudnn_lstm  # noqa: E402
 from models.normalizer import identity_normalizer  # noqa: E402
 from models.policy import init_ensemble  # noqa: E402
 from training.cache import Cache  # noqa: E402
+from training.loss import policy_loss  # noqa: E402
 from training.practice import practice_policy  # noqa: E402
+from training.sampler import sample_subsequences  # noqa: E402
 from training.runconfig import preset  # noqa: E402
 from training.update import init_train_state, make_train_loop  # noqa: E402
 from ttmjx.world import thrower  # noqa: E402
@@ -224,6 +229,24 @@ def synthetic_cache(key, capacity: int, horizon: int, window: int, demos: int) -
                  jnp.arange(capacity) < demos, jnp.int32(capacity), jnp.int32(capacity))
 
 
+def kernel_agreement(pcfg, tcfg, params, cache, key) -> dict:
+    """The members' loss and gradients on one batch by the scan and by cuDNN (vmapped over the
+    members, as the updates are): the largest differences, absolute and relative to the largest
+    gradient value."""
+    batch = sample_subsequences(key, cache, tcfg.window, tcfg.batch_size, pcfg.input_frames, pcfg.obs_size)
+
+    def grads(kernel):
+        one = lambda p: jax.value_and_grad(lambda net: policy_loss(pcfg, p._replace(net=net), batch, "float32", kernel))(p.net)  # noqa: E731
+        return jax.jit(jax.vmap(one))(params)
+
+    (l_s, g_s), (l_c, g_c) = grads("scan"), grads("cudnn")
+    gmax = max(float(jnp.abs(g).max()) for g in jax.tree.leaves(g_s))
+    gdiff = max(float(jnp.abs(a - b).max()) for a, b in zip(jax.tree.leaves(g_s), jax.tree.leaves(g_c)))
+    return {"loss_scan": np.asarray(l_s).tolist(), "loss_cudnn": np.asarray(l_c).tolist(),
+            "loss_max_rel_diff": float(jnp.max(jnp.abs(l_s - l_c) / jnp.abs(l_s))),
+            "grad_max_abs_diff": gdiff, "grad_max_abs": gmax, "grad_max_diff_over_max": gdiff / gmax}
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("preset", nargs="?", default="paper-sim")
@@ -321,10 +344,18 @@ def main():
         cache = jax.jit(synthetic_cache, static_argnums=(1, 2, 3, 4))(
             jax.random.fold_in(key, 5), cap, world.horizon, tcfg.window, min(cfg.demos, cap))
         state = init_train_state(jax.random.fold_in(key, 6), pcfg, tcfg, norm)
-        for dt in ("float32", "bfloat16"):
-            t = dataclasses.replace(tcfg, update_dtype=dt)
-            run(f"train_{dt}", make_train_loop(pcfg, t, a.updates), (state, cache, key), a.updates,
-                what=f"make_train_loop: {a.updates} updates of {members} member(s), {dt}")
+        variants = [("float32", "scan"), ("bfloat16", "scan")]
+        if pcfg.kind == "lstm" and cudnn_lstm.available():
+            variants.append(("float32", "cudnn"))
+        for dt, kernel in variants:
+            t = dataclasses.replace(tcfg, update_dtype=dt, lstm_kernel=kernel)
+            name = f"train_{dt}" if kernel == "scan" else f"train_{kernel}"
+            run(name, make_train_loop(pcfg, t, a.updates), (state, cache, key), a.updates,
+                what=f"make_train_loop: {a.updates} updates of {members} member(s), {dt}, the LSTM by {kernel}")
+        if len(variants) == 3:
+            res["cudnn_vs_scan"] = kernel_agreement(pcfg, tcfg, state.params, cache, key)
+            print(f"[step_profile] cudnn_vs_scan: {res['cudnn_vs_scan']}", file=sys.stderr, flush=True)
+            save()
         del cache
 
     roll = lambda t_max: backend.rollout_fn(policy, t_max, members)  # noqa: E731
