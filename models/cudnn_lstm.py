@@ -65,8 +65,9 @@ def _looped_rule(primitive):
     """A batching rule that binds `primitive` once per index of the mapped axis: every operand
     brought to that axis in front (broadcast where unmapped), `lax.map` over it."""
     def rule(args, dims, **params):
-        size = next(a.shape[d] for a, d in zip(args, dims) if d is not batching.not_mapped)
-        front = [batching.bdim_at_front(a, d, size) for a, d in zip(args, dims)]
+        size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)      # None: not mapped
+        front = [jnp.broadcast_to(a, (size, *a.shape)) if d is None else jnp.moveaxis(a, d, 0)
+                 for a, d in zip(args, dims)]
         outs = jax.lax.map(lambda xs: tuple(primitive.bind(*xs, **params)), tuple(front))
         return list(outs), [0] * len(outs)
     return rule
