@@ -44,6 +44,9 @@ def cases():
         ("train --preset tiny", "--train.action-noise", ["-0.1"]),
         ("train --preset tiny", "--train.practice-goal-margin", ["-0.1", "nan", "5"]),
         ("train --preset tiny", "--train.practice-keep", ["all", ""]),
+        ("train --preset tiny", "--train.lstm-kernel", ["cudnn2"]),
+        ("train --preset tiny --train.update-dtype bfloat16", "--train.lstm-kernel", ["cudnn"]),   # float32 only
+        ("train --preset tiny --policy.kind lstm", "--train.lstm-kernel", ["cudnn"]),     # a CPU has no cuDNN
         ("train --preset tiny", "--episodes-per-ssp", ["33", "0"]),
         ("train --preset tiny", "--world.control-hz", ["-10", "0"]),
         ("train --preset tiny", "--world.episode-s", ["0", "-1"]),

@@ -8,7 +8,7 @@
 # (carry .wheels) -> $OUT/log.txt and the phase's JSON
 source scripts/dev/device_setup.sh
 export TTMJX_JAX_CACHE=/tmp/jax_cache_$PHASE
-rm -rf "$TTMJX_JAX_CACHE"
+[ -z "${KEEP_CACHE:-}" ] && rm -rf "$TTMJX_JAX_CACHE"     # KEEP_CACHE=1: the phase's cache as the last call left it
 s=$(date +%s)
 case "$PHASE" in
   profile)
