@@ -71,7 +71,7 @@ FIRST = ("test_baselines_loops.py", "test_trainer.py", "test_bad_input.py", "tes
 # @pytest.mark.slow in their modules, and here by node id the parametrized cases that are slow
 # where their siblings are not. The README's command runs the rest; CI (.ci/run) runs
 # both sets. Marked with @pytest.mark.slow in their own modules: test_baselines_loops (all),
-# test_baselines, test_trainer, test_qtopt, test_paper_bootstrap, test_timing, test_cli.
+# test_baselines, test_trainer, test_qtopt, test_paper_bootstrap, test_timing, test_cli, test_bootstrap.
 SLOW_ELSEWHERE = (   # parametrized cases slow where the module's other cases are not
     "test_bad_input.py::test_a_damaged_config_json_is_repaired_from_the_checkpoint_on_resume[empty]",
     "test_bad_input.py::test_a_damaged_config_json_is_repaired_from_the_checkpoint_on_resume[deleted]",

@@ -54,6 +54,7 @@ def roundtrip(traj, directory, source):
     return back
 
 
+@pytest.mark.slow    # 47-55 s of compiles for its 16 throws; the fast set keeps the striker's hits (test_striker)
 def test_oracle_is_the_striker_of_before(tmp_path):
     assert demos.source_name("scripted") == "oracle"
     traj = roundtrip(demos.collect(CFG, "oracle", 16, seed=3), tmp_path, "oracle")

@@ -58,6 +58,7 @@ def test_bench_c_reports_rates_against_the_raw_rollout_baseline():
         assert res[k] > 0, k
 
 
+@pytest.mark.slow    # 38-82 s of compiles for 24 striker throws; the fast set keeps `ttmjx demos` (test_paper_bootstrap)
 def test_demos_dataset_plot_and_no_overwrite(tmp_path, capsys):
     out = str(tmp_path / "d")
     # The striker (the paper's bootstrap is `paper`: tests/test_paper_bootstrap.py).

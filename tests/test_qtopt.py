@@ -216,6 +216,7 @@ def test_a_stopped_run_resumes_to_the_uninterrupted_result(table, tmp_path, monk
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+@pytest.mark.slow    # 40 s of compiles; the fast set keeps uniform_runs through every evaluation
 def test_policy_runs_draws_what_uniform_runs_draws():
     """eval/baselines.policy_runs (any Policy) against eval.evaluate.uniform_runs (a PolicyConfig's)
     with the same MLP policy and keys: the same goals, throws and outcomes."""
