@@ -258,6 +258,7 @@ def main():
     ap.add_argument("--capacity", type=int, help="synthetic cache rows (default: the preset's)")
     ap.add_argument("--pieces", default="physics,policy,train,rollout", help="a subset of physics,policy,train,rollout")
     ap.add_argument("--episode", action="store_true", help="also a whole episode of rollout_fn")
+    ap.add_argument("--members", type=int, help="train.members (default: the preset's)")
     ap.add_argument("--solver-iterations", type=int, help="world.contacts.solver_iterations (default: the preset's)")
     ap.add_argument("--line-search-iterations", type=int,
                     help="world.contacts.line_search_iterations (default: the preset's)")
@@ -266,6 +267,8 @@ def main():
     t_start = time.perf_counter()
     cfg = preset(a.preset)
     cfg = dataclasses.replace(cfg, world=cfg.world.with_solver_caps(a.solver_iterations, a.line_search_iterations))
+    if a.members:
+        cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, members=a.members))
     world, pcfg, tcfg = cfg.world, cfg.policy, cfg.train
     b = a.worlds or cfg.episodes_per_ssp
     members = tcfg.members
