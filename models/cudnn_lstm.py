@@ -10,8 +10,10 @@ same parameters serve both paths: `cudnn_weights` packs them into cuDNN's flat l
 JAX's own reference implementation, `rnn.lstm_ref`, on the CPU).
 
 cuDNN's primitives have no batching rule, and the updates are vmapped over ensemble members and
-over a table's lanes (each with its own weights). `_looped_rule` gives them one: the call is made
-once per index of the mapped axis (`lax.map`), each a whole cuDNN LSTM over the batch of windows.
+over a table's lanes. `_unit_rule` gives them one for an axis of size 1 (one member of one lane:
+the axis is dropped around one call). A larger axis is refused: looped over it (`lax.map`) the
+calls were slower than the vmapped scan and their gradients were wrong (docs/BENCHMARKS.md), so
+training.loss.lstm_kernel takes the scan there.
 """
 from __future__ import annotations
 
@@ -61,18 +63,18 @@ def cudnn_sequence_outputs(net_params, x):
     return y @ p["head"]["kernel"] + p["head"]["bias"]
 
 
-def _looped_rule(primitive):
-    """A batching rule that binds `primitive` once per index of the mapped axis: every operand
-    brought to that axis in front (broadcast where unmapped), `lax.map` over it."""
+def _unit_rule(primitive):
+    """A batching rule for a mapped axis of size 1: the axis dropped, one call, the axis put back."""
     def rule(args, dims, **params):
         size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)      # None: not mapped
-        front = [jnp.broadcast_to(a, (size, *a.shape)) if d is None else jnp.moveaxis(a, d, 0)
-                 for a, d in zip(args, dims)]
-        outs = jax.lax.map(lambda xs: tuple(primitive.bind(*xs, **params)), tuple(front))
-        return list(outs), [0] * len(outs)
+        if size != 1:
+            raise NotImplementedError(f"{primitive.name} mapped over {size} sets of operands: cuDNN's LSTM serves "
+                                      f"one member of one lane (training.loss.lstm_kernel picks the scan otherwise)")
+        outs = primitive.bind(*[a if d is None else jnp.squeeze(a, d) for a, d in zip(args, dims)], **params)
+        return [o[None] for o in outs], [0] * len(outs)
     return rule
 
 
 for _p in (rnn.rnn_fwd_p, rnn.rnn_bwd_p):
     if _p not in batching.fancy_primitive_batchers:     # JAX may come to have its own
-        batching.primitive_batchers[_p] = _looped_rule(_p)
+        batching.primitive_batchers[_p] = _unit_rule(_p)

@@ -37,17 +37,26 @@ def masked_mean(losses, mask):
     return jnp.sum(w * losses) / jnp.maximum(w.sum(), 1.0)
 
 
-def lstm_kernel(pcfg: PolicyConfig, tcfg: TrainConfig) -> str:
+def lstm_kernel(pcfg: PolicyConfig, tcfg: TrainConfig, lanes: int = 1) -> str:
     """The kernel the updates run the network with: "cudnn" or "scan" (TrainConfig.lstm_kernel
-    resolved on this backend). Raises ValueError for "cudnn" where cuDNN's LSTM cannot run."""
+    resolved on this backend for a program of `lanes` lanes). cuDNN serves one member of one
+    lane: mapped over several sets of weights it is slower than the vmapped scan and its looped
+    gradients were wrong (docs/BENCHMARKS.md, "The updates' LSTM through cuDNN"), so "auto" takes
+    the scan there and "cudnn" is refused. Raises ValueError for "cudnn" where it cannot run."""
     if pcfg.kind != "lstm":
         return "scan"
-    if tcfg.lstm_kernel == "cudnn" and not cudnn_lstm.available():
-        raise ValueError(f"--train.lstm-kernel cudnn needs a CUDA GPU with JAX's cuDNN RNN kernels; this backend is "
-                         f"{jax.default_backend()!r}; expected --train.lstm-kernel scan or auto")
+    one = tcfg.members == 1 and lanes == 1
+    if tcfg.lstm_kernel == "cudnn":
+        if not cudnn_lstm.available():
+            raise ValueError(f"--train.lstm-kernel cudnn needs a CUDA GPU with JAX's cuDNN RNN kernels; this backend "
+                             f"is {jax.default_backend()!r}; expected --train.lstm-kernel scan or auto")
+        if not one:
+            raise ValueError(f"--train.lstm-kernel cudnn runs one member of one lane; this program has "
+                             f"--train.members {tcfg.members} and {lanes} lane(s); expected auto or scan")
+        return "cudnn"
     if tcfg.lstm_kernel == "auto":
-        return "cudnn" if tcfg.update_dtype == "float32" and cudnn_lstm.available() else "scan"
-    return tcfg.lstm_kernel
+        return "cudnn" if one and tcfg.update_dtype == "float32" and cudnn_lstm.available() else "scan"
+    return "scan"
 
 
 def sequence_outputs(cfg: PolicyConfig, net, x, kernel: str = "scan"):

@@ -17,6 +17,7 @@ MuJoCo C the compiled pieces vmapped over the lanes and one host rollout for eve
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable, NamedTuple
 
 import jax
@@ -29,6 +30,7 @@ from models.policy import (NoisyParams, make_policy, with_action_noise, with_int
 from training.cache import Cache, add_episodes
 from training.config import TrainConfig
 from training.frontier import with_frontier
+from training.loss import lstm_kernel
 from training.mesh import Layout, lane_layout
 from training.update import Knobs, TrainState, acting_params, lane_knobs, train_loop_fn
 from ttmjx.world import thrower
@@ -192,7 +194,9 @@ class Practice:
         self.lane_noise = lane_noise
         self.train_loop, self._train_one = None, None
         if train_steps > 0:
-            self._train_one = train_loop_fn(pcfg, tcfg, train_steps)   # one run, pure
+            # the LSTM's kernel for this program's lanes (auto: cuDNN for one member of one lane)
+            kernel = dataclasses.replace(tcfg, lstm_kernel=lstm_kernel(pcfg, tcfg, seeds))
+            self._train_one = train_loop_fn(pcfg, kernel, train_steps)   # one run, pure
             self.train_loop = self.lanes(over_seeds(self._train_one, backend.name, self.layout.mesh.size))
         sample = lambda k: thrower.sample_throws(k, world, THROW_BLOCK * episodes)  # noqa: E731
         self._sample_throws = self.lanes(jax.vmap(sample))

@@ -89,7 +89,7 @@ class Run:
         self.single = isinstance(cfgs, RunConfig)
         every = [cfgs] if self.single else list(cfgs)
         check_one_batch(every)
-        lstm_kernel(every[0].policy, every[0].train)      # refuses a kernel this backend lacks, before any work
+        lstm_kernel(every[0].policy, every[0].train, len(every))   # refuses a kernel it cannot run, before any work
         if self.single and parent is None:
             check_not_seed_parent(every[0].run_dir)
         self.all_cfgs = every

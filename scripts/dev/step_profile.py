@@ -348,7 +348,7 @@ def main():
             jax.random.fold_in(key, 5), cap, world.horizon, tcfg.window, min(cfg.demos, cap))
         state = init_train_state(jax.random.fold_in(key, 6), pcfg, tcfg, norm)
         variants = [("float32", "scan"), ("bfloat16", "scan")]
-        if pcfg.kind == "lstm" and cudnn_lstm.available():
+        if pcfg.kind == "lstm" and cudnn_lstm.available() and members == 1:    # cuDNN: one member (training.loss)
             variants.append(("float32", "cudnn"))
         for dt, kernel in variants:
             t = dataclasses.replace(tcfg, update_dtype=dt, lstm_kernel=kernel)
