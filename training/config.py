@@ -70,8 +70,8 @@ class TrainConfig:
     # Adam's moments and the loss stay float32). Rollouts and evaluations act in float32.
     update_dtype: Literal[UPDATE_DTYPES] = "float32"
     # How the updates run an LSTM policy over its windows: "scan", a lax.scan of the cell (every
-    # backend); "cudnn", cuDNN's LSTM (models.cudnn_lstm: a GPU, float32); "auto", cuDNN where
-    # both hold, else the scan. The same parameters and function either way; rollouts always step
+    # backend); "cudnn", cuDNN's LSTM (models.cudnn_lstm: a GPU, float32, one member of one
+    # lane); "auto", cuDNN where all of that holds, else the scan. The same parameters and function either way; rollouts always step
     # the cell, and an MLP policy (framestack) has no recurrence to run either way.
     lstm_kernel: Literal[LSTM_KERNELS] = "auto"
 
