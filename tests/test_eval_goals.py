@@ -257,10 +257,18 @@ def test_robot_run_plays_every_form(tmp_path):
 
 
 def test_eval_plays_every_form():
-    """N and 'uniform' (200) are the same uniform draw; inline goals are a goal file's goals on
-    its throws; 'five' its goals A-E."""
-    assert cli_json("eval", RUN, "--goals", "uniform", "--seed", "2", "--json") == \
-        cli_json("eval", RUN, "--goals", "200", "--seed", "2", "--json")
+    """N and 'uniform' (200) are the same uniform draw: the same goals and rollout key, so the
+    same rollout, which plays every goal; 'five' its goals A-E."""
+    from eval.evaluate import EVAL_UNIFORM_GOALS, eval_plan
+    from ttmjx.world.goalspec import goal_spec
+    plans = [eval_plan(goal_spec(v), World(), jax.random.PRNGKey(2), 1) for v in ("uniform", "200")]
+    raw = lambda x: jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x  # noqa: E731
+    (goals_u, names_u, key_u), (goals_n, names_n, key_n) = plans
+    np.testing.assert_array_equal(goals_u, goals_n)
+    np.testing.assert_array_equal(raw(key_u), raw(key_n))
+    assert names_u is names_n is None
+    uniform = cli_json("eval", RUN, "--goals", "uniform", "--seed", "2", "--json")
+    assert uniform["goals"] == EVAL_UNIFORM_GOALS == 200 and 0.0 <= uniform["within_30cm"] <= 1.0
     five = cli_json("eval", RUN, "--goals", "five", "--per-goal", "1", "--json")
     assert five["goals"] == 5 and sorted(five["per_goal"]) == ["A", "B", "C", "D", "E"]
 

@@ -223,3 +223,13 @@ def test_the_cudnn_weight_packing_gives_jaxs_reference_lstm_the_same_outputs():
     head = p["head"]
     want = jax.vmap(lambda s: lstm_sequence(net, s))(x)
     np.testing.assert_allclose(y @ head["kernel"] + head["bias"], want, rtol=1e-5, atol=1e-6)
+
+
+def test_cudnns_batching_rule_refuses_more_than_one_set_of_weights():
+    """cuDNN's LSTM serves one member of one lane (its looped gradients were wrong: BENCHMARKS):
+    its batching rule refuses a mapped axis of 2 before any call, naming the count."""
+    from jax.experimental import rnn
+    from models.cudnn_lstm import _unit_rule
+    x, w = jnp.zeros((2, 3, 4, 5)), jnp.zeros((2, 7))
+    with pytest.raises(NotImplementedError, match="mapped over 2 sets of operands"):
+        _unit_rule(rnn.rnn_fwd_p)([x, w], [0, 0])
